@@ -1,0 +1,1 @@
+"""hypnerf's ML core: hash encoding, NeRF field, renderer, per-object fits, datasets, metrics."""

@@ -1,0 +1,1 @@
+"""Multi-view datasets of objects: the on-disk format, ground-truth rendering and the data sources."""

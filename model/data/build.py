@@ -1,0 +1,126 @@
+"""Turning meshes into an on-disk dataset: normalise, render the fixed poses, write folders and the index.
+
+Every source (procedural chairs, user mesh files, Sweet Home 3D furniture) yields
+:class:`SourceObject` items; :func:`build_dataset` does the rest the same way for all of them.
+Adding objects to a folder that already holds a dataset merges them into its ``index.json``
+(an object with the same id is replaced) and recomputes the hash-based splits over all ids.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from model.data.cameras import CAMERA_ANGLE_X, DEFAULT_VIEWS, SCENE_AABB, evaluation_poses, training_poses
+from model.data.dataset import INDEX_FILE, ObjectEntry, assign_splits, load_index, write_index, write_object
+from model.data.meshes import RenderMesh, normalise
+from model.data.raycast import DEFAULT_SUPERSAMPLE, render_views
+from model.rays import focal_from_fov
+
+log = logging.getLogger(__name__)
+
+_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+@dataclass
+class RenderSettings:
+    """How each object is rendered: training view count, square image size, sub-pixel rays per side."""
+
+    views: int = DEFAULT_VIEWS
+    resolution: int = 128
+    supersample: int = DEFAULT_SUPERSAMPLE
+
+    def __post_init__(self):
+        if self.views < 1:
+            raise ValueError(f"--views must be at least 1, got {self.views}")
+        if self.resolution < 4:
+            raise ValueError(f"--res must be at least 4 pixels, got {self.resolution}")
+        if self.supersample < 1:
+            raise ValueError(f"supersample must be at least 1, got {self.supersample}")
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class SourceObject:
+    """An object to render: its id (a folder name), index fields, and a loader for its mesh.
+
+    ``load`` returns the mesh in Z-up world axes (any position and scale: it is normalised here)
+    and the index fields only known once it is loaded: they update ``extra`` (e.g. ``texture``
+    status), except ``caption``, a default used when ``caption`` is empty. ``extra`` holds
+    provenance and attribution (``source``, ``name``, ``creator``, ``license``, ...).
+    """
+
+    id: str
+    category: str
+    caption: str
+    load: Callable[[], tuple[RenderMesh, dict]]
+    extra: dict = field(default_factory=dict)
+
+
+def slug(text: str) -> str:
+    """A folder-safe id fragment: lower case letters, digits and dashes."""
+    cleaned = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")
+    return cleaned or "object"
+
+
+def dataset_poses(views: int) -> tuple[np.ndarray, list[str]]:
+    """Training poses followed by the fixed evaluation poses, and the split of each frame."""
+    train, test = training_poses(views), evaluation_poses()
+    return np.concatenate([train, test]), ["train"] * len(train) + ["test"] * len(test)
+
+
+def render_object(mesh: RenderMesh, settings: RenderSettings, desc: str = "rendering") -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Render a normalised mesh from all dataset poses: ``(images [V, R, R, 4] uint8, c2w [V, 4, 4], frame splits)``."""
+    c2w, splits = dataset_poses(settings.views)
+    size = settings.resolution
+    images = render_views(mesh, c2w, size, size, focal_from_fov(size, CAMERA_ANGLE_X), settings.supersample, desc)
+    return images, c2w, splits
+
+
+def build_dataset(out: Path, objects: Iterable[SourceObject], settings: RenderSettings, total: int | None = None) -> list[ObjectEntry]:
+    """Render every object into ``out/<id>/`` and write ``out/index.json``; returns all index entries.
+
+    The index is rewritten after each object, so an interrupted run leaves a usable dataset.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    entries: dict[str, ObjectEntry] = {}
+    if (out / INDEX_FILE).exists():
+        entries = {entry.id: entry for entry in load_index(out)}
+        log.info("adding to the existing dataset in %s (%d objects)", out, len(entries))
+    added: set[str] = set()
+    for item in tqdm(objects, total=total, desc="objects", unit="object"):
+        if not _ID_PATTERN.match(item.id):
+            raise ValueError(f"object id {item.id!r} is not a safe folder name (letters, digits, '.', '_', '-')")
+        if item.id in added:
+            raise ValueError(f"two objects share the id {item.id!r}; give them distinct names")
+        mesh, learned = item.load()
+        mesh = normalise(mesh)
+        extra = {**item.extra, **learned}
+        fallback = extra.pop("caption", "") or f"a {item.category}"
+        caption = item.caption or fallback
+        images, c2w, frame_splits = render_object(mesh, settings, desc=item.id)
+        write_object(out / item.id, images, c2w, frame_splits, CAMERA_ANGLE_X, SCENE_AABB, mesh.to_trimesh())
+        added.add(item.id)
+        entries[item.id] = ObjectEntry(item.id, "train", item.category, caption, extra)
+        _write_with_splits(out, entries)
+        log.info("wrote %s: %d views at %dx%d (%s)", item.id, len(images), settings.resolution, settings.resolution, caption)
+    if not added:
+        raise ValueError("no objects to render")
+    return _write_with_splits(out, entries)
+
+
+def _write_with_splits(out: Path, entries: dict[str, ObjectEntry]) -> list[ObjectEntry]:
+    splits = assign_splits(entries)
+    for object_id, entry in entries.items():
+        entry.split = splits[object_id]
+    write_index(out, entries.values())
+    return sorted(entries.values(), key=lambda e: e.id)
