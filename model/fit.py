@@ -21,6 +21,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
+from model.data.dataset import validate_views
 from model.field import FieldConfig, FieldParams, density, init_params
 from model.occupancy import OccupancyGrid, carve_from_masks, density_threshold, dilate, max_cell_density
 from model.rays import pixel_rays
@@ -114,6 +115,7 @@ def training_rays(views, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
 
 def fit_object(views, cfg: FitConfig, *, device=None, progress: bool = True) -> FitResult:
     """Fit one object's field to its training ``views`` (a ``model.data.dataset.Views``)."""
+    validate_views(views.images, views.c2w)
     device = torch.device(device) if device is not None else torch.device("cpu")
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
@@ -149,9 +151,10 @@ def fit_object(views, cfg: FitConfig, *, device=None, progress: bool = True) -> 
             params, cfg.field, origins[idx], directions[idx], cfg.render, grid=grid.grid, background=background, jitter=True, generator=generator
         )
         loss = torch.mean((out["rgb"] - target) ** 2)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        if loss.requires_grad:  # a batch whose rays all miss the occupied box has nothing to train
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
         scheduler.step()
         if step % 50 == 0 or step == cfg.steps - 1:
             mse = loss.item()

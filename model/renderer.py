@@ -170,6 +170,10 @@ def render_image(
 ) -> dict[str, torch.Tensor]:
     """Render one view in chunks of ``cfg.chunk_rays`` rays; returns ``rgb [H, W, 3]``,
     ``opacity [H, W]``, ``depth [H, W]`` and ``samples`` (total density evaluations)."""
+    if c2w.shape != (4, 4) or not bool(torch.isfinite(c2w).all()):
+        raise ValueError("the camera pose must be a finite 4x4 camera-to-world matrix (it has NaN/Inf or the wrong shape)")
+    if width < 1 or height < 1 or not focal > 0 or not torch.isfinite(torch.tensor(focal)):
+        raise ValueError(f"image size must be positive and focal finite and positive, got {width}x{height}, focal {focal}")
     origins, directions = pixel_rays(c2w.float(), width, height, focal)
     origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
     parts: dict[str, list[torch.Tensor]] = {"rgb": [], "opacity": [], "depth": []}

@@ -71,11 +71,10 @@ def article(word: str) -> str:
     return "an" if word[:1].lower() in "aeiou" else "a"
 
 
-def default_caption(mesh: RenderMesh, name: str, category: str) -> str:
-    """``a <main colour> <noun>``: the name when it mentions the category, else the category."""
-    noun = name.lower() if category.lower() in name.lower() else category.lower()
+def default_caption(mesh: RenderMesh, noun: str) -> str:
+    """``a <main colour> <noun>``, e.g. "a brown armchair"."""
     colour = dominant_colour(mesh)
-    return f"{article(colour)} {colour} {noun}"
+    return f"{article(colour)} {colour} {noun.lower()}"
 
 
 def load_upright(path: Path, up: str = "y", rotation: np.ndarray | None = None) -> tuple[RenderMesh, str]:
@@ -121,4 +120,5 @@ def mesh_file_objects(paths: list[Path], category: str, captions: dict[str, str]
 
 def _load_file(path: Path, up: str, name: str, category: str) -> tuple[RenderMesh, dict]:
     mesh, texture = load_upright(path, up)
-    return mesh, {"texture": texture, "caption": default_caption(mesh, name, category)}
+    noun = name if category.lower() in name.lower() else category
+    return mesh, {"texture": texture, "caption": default_caption(mesh, noun)}
