@@ -46,13 +46,22 @@ def color_fn_for(params: FieldParams, field_cfg: FieldConfig, device):
 
 
 def field_mesh(params: FieldParams, field_cfg: FieldConfig, grid: OccupancyGrid, resolution: int = 128) -> trimesh.Trimesh:
-    """Marching-cubes mesh of the field over its occupied box, with vertex colours."""
+    """Marching-cubes mesh of the field over its occupied box, with vertex colours.
+
+    Density in cells the occupancy grid marks empty is taken as zero, as the renderer does, so the
+    mesh shows the NeRF that renders and not the haze left where no ray constrains it.
+    """
     device = params["tables"].device
     box = grid.tight_box()
     if box is None:
         return trimesh.Trimesh()
+    field_density = unit_density_fn(params, field_cfg, device)
+
+    def rendered_density(points: torch.Tensor) -> torch.Tensor:
+        return field_density(points) * grid.lookup(points)
+
     return extract_mesh(
-        unit_density_fn(params, field_cfg, device),
+        rendered_density,
         box[0],
         box[1],
         resolution=resolution,

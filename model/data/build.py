@@ -108,7 +108,9 @@ def build_dataset(out: Path, objects: Iterable[SourceObject], settings: RenderSe
         fallback = extra.pop("caption", "") or f"a {item.category}"
         caption = item.caption or fallback
         images, c2w, frame_splits = render_object(mesh, settings, desc=item.id)
-        write_object(out / item.id, images, c2w, frame_splits, CAMERA_ANGLE_X, SCENE_AABB, mesh.to_trimesh())
+        write_object(
+            out / item.id, images, c2w, frame_splits, CAMERA_ANGLE_X, SCENE_AABB, mesh.to_trimesh(), settings.to_json()
+        )
         added.add(item.id)
         entries[item.id] = ObjectEntry(item.id, "train", item.category, caption, extra)
         _write_with_splits(out, entries)

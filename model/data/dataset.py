@@ -5,6 +5,7 @@ Layout (NeRF-synthetic convention, one folder per object)::
     DIR/index.json                 {"format": 1, "objects": [{"id", "split", "category", "caption",
                                     "source", ...attribution: "name", "creator", "license", "texture"}]}
     DIR/<id>/transforms.json       {"camera_angle_x", "w", "h", "aabb": [[x, y, z], [x, y, z]],
+                                    "render": {"views", "resolution", "supersample"} (provenance),
                                     "frames": [{"file_path": "images/train_000.png",
                                                 "transform_matrix": 4x4 camera-to-world,
                                                 "split": "train" | "test"}]}
@@ -180,11 +181,13 @@ def write_object(
     camera_angle_x: float,
     aabb: Sequence[Sequence[float]],
     mesh=None,
+    render: dict | None = None,
 ) -> None:
     """Write one object folder: PNGs, ``transforms.json`` (written last) and optionally ``mesh.ply``.
 
     ``images`` is 8-bit RGBA ``[V, H, W, 4]``, ``c2w`` ``[V, 4, 4]``, ``frame_splits`` one of
-    ``"train"``/``"test"`` per view, ``mesh`` a trimesh mesh or ``None``.
+    ``"train"``/``"test"`` per view, ``mesh`` a trimesh mesh or ``None``, ``render`` the render
+    settings, kept in ``transforms.json`` for provenance.
     """
     validate_views(images, c2w)
     if images.dtype != np.uint8 or images.shape[-1] != 4:
@@ -207,6 +210,7 @@ def write_object(
         "w": int(images.shape[2]),
         "h": int(images.shape[1]),
         "aabb": [list(map(float, corner)) for corner in aabb],
+        **({"render": render} if render else {}),
         "frames": frames,
     }
     (folder / TRANSFORMS_FILE).write_text(json.dumps(transforms, indent=1))
@@ -312,12 +316,12 @@ def _aabb(transforms_data: dict, transforms: Path) -> np.ndarray:
 
 def load_views(folder: Path, split: str | None = "train") -> Views:
     """Load one object's views of a frame split (``"train"``, ``"test"``, or ``None`` for all)."""
+    if split is not None and split not in FRAME_SPLITS:
+        raise ValueError(f"split must be one of {FRAME_SPLITS} or None, got {split!r}")
     folder = Path(folder)
     transforms = folder / TRANSFORMS_FILE
     hint = "the object folder is incomplete: re-render it"
     data = _read_json(transforms, hint)
-    if split is not None and split not in FRAME_SPLITS:
-        raise ValueError(f"split must be one of {FRAME_SPLITS} or None, got {split!r}")
     angle = data.get("camera_angle_x")
     if not isinstance(angle, (int, float)) or not math.isfinite(angle) or not 0.0 < angle < math.pi:
         raise DatasetError(f"{transforms}: 'camera_angle_x' must be a horizontal field of view in radians, got {angle!r}")
@@ -346,6 +350,7 @@ def load_views(folder: Path, split: str | None = "train") -> Views:
     c2w = torch.from_numpy(poses.astype(np.float32))
     validate_views(image_tensor, c2w)
     mesh = folder / MESH_FILE
+    log.debug("loaded %d %s views of %s at %dx%d", len(files), split or "all", folder, expected[1], expected[0])
     return Views(
         images=image_tensor,
         c2w=c2w,

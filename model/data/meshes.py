@@ -35,6 +35,7 @@ from PIL import Image
 log = logging.getLogger(__name__)
 
 OBJECT_SIZE = 0.9
+MAX_TEXTURE_SIZE = 1024
 
 # Y-up to Z-up: (x, y, z) -> (x, -z, y); the Y-up front (+Z) becomes -Y.
 _Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -154,9 +155,13 @@ def normalise(mesh: RenderMesh, size: float = OBJECT_SIZE) -> RenderMesh:
     return mesh.transformed(np.eye(3) * scale, -0.5 * (lo + hi) * scale)
 
 
-def image_to_texture(image: Image.Image) -> np.ndarray:
-    """A Pillow image as a float32 sRGB RGBA array in [0, 1]."""
-    return np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
+def image_to_texture(image: Image.Image, max_size: int = MAX_TEXTURE_SIZE) -> np.ndarray:
+    """A Pillow image as a float32 sRGB RGBA array in [0, 1], shrunk to at most ``max_size`` per side."""
+    image = image.convert("RGBA")
+    if max(image.size) > max_size:
+        # Ground truth is rendered at a few hundred pixels: 4k textures would only cost memory.
+        image.thumbnail((max_size, max_size), Image.Resampling.LANCZOS)
+    return np.asarray(image, dtype=np.float32) / 255.0
 
 
 class _RecordingResolver(trimesh.resolvers.FilePathResolver):

@@ -2,7 +2,7 @@
 
 Rays come from :func:`model.rays.pixel_rays` (the same cameras a NeRF is trained with) and are
 intersected with **embreex** (Intel Embree's Python binding, the ray caster trimesh itself uses:
-tens of millions of rays per second on one core), which returns the hit triangle and its
+several million rays per second on one core here), which returns the hit triangle and its
 barycentric coordinates directly.
 
 - Antialiasing: ``supersample x supersample`` rays per pixel on a regular sub-pixel grid. Alpha
@@ -18,8 +18,6 @@ barycentric coordinates directly.
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 import torch
 from embreex import rtcore_scene
@@ -29,8 +27,6 @@ from tqdm import tqdm
 from model.data.meshes import RenderMesh
 from model.rays import pixel_rays
 
-log = logging.getLogger(__name__)
-
 DEFAULT_SUPERSAMPLE = 2
 AMBIENT = 0.30
 # (direction towards the light, intensity); the key light is above the front-left (fronts face -Y).
@@ -39,7 +35,6 @@ LIGHTS = (
     ((0.70, 0.35, 0.35), 0.30),
     ((0.0, 0.0, -1.0), 0.12),
 )
-_VIEWS_PER_BATCH = 8
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -146,13 +141,14 @@ def render_views(
     """
     caster = RayCaster(mesh)
     s = int(supersample)
+    # Rays of an identity camera, turned by each pose below: the same rays pixel_rays gives for
+    # that pose, built once and rotated into reused buffers (fresh memory is slow to fault in).
+    _, local = pixel_rays(torch.eye(4, dtype=torch.float64), width * s, height * s, focal * s)
+    local = local.numpy().astype(np.float32)
+    directions, origins = np.empty_like(local), np.empty_like(local)
     views = np.zeros((len(c2w), height, width, 4), dtype=np.uint8)
-    with tqdm(total=len(c2w), desc=desc, unit="view", leave=False) as progress:
-        # Rays for a few views per call: building them is cheaper batched, and memory stays bounded.
-        for start in range(0, len(c2w), _VIEWS_PER_BATCH):
-            poses = torch.as_tensor(np.asarray(c2w[start : start + _VIEWS_PER_BATCH]), dtype=torch.float32)
-            origins, directions = pixel_rays(poses, width * s, height * s, focal * s)
-            for offset, (o, d) in enumerate(zip(origins.numpy(), directions.numpy())):
-                views[start + offset] = caster.render(o, d, s)
-                progress.update()
+    for index, pose in enumerate(tqdm(np.asarray(c2w, dtype=np.float32), desc=desc, unit="view", leave=False)):
+        np.matmul(local, pose[:3, :3].T, out=directions)
+        origins[...] = pose[:3, 3]
+        views[index] = caster.render(origins, directions, s)
     return views
