@@ -34,7 +34,7 @@ test: install
 	$(BIN)/python -m pytest -q
 
 bench: install
-	$(BIN)/pip install --quiet --no-deps nerfstudio==1.1.5 jaxtyping wadler_lindig rich
+	$(BIN)/pip install --quiet --no-deps nerfstudio==1.1.5 jaxtyping wadler_lindig rich viser msgspec websockets zstandard
 	$(BIN)/python -m benchmarks.run_all
 
 data: install

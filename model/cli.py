@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import sys
 from pathlib import Path
@@ -57,6 +58,9 @@ def cmd_fit(args) -> int:
     save_fit(out, result, cfg, {"data": str(root.resolve()), "object": args.object})
     log.info("evaluating on %d held-out views", len(test.c2w))
     metrics, renders, mesh = evaluate_field(result.params, cfg.field, result.grid, test, RenderConfig(), mesh_resolution=args.mesh_resolution)
+    if not math.isfinite(metrics.get("chamfer", 0.0)):
+        log.warning("the fitted field has no surface above the mesh threshold; chamfer is reported as null")
+        metrics["chamfer"] = None
     metrics.update({"wall_s": result.wall_s, "object": args.object, "steps": cfg.steps, "occupied_fraction": result.grid.fraction})
     (out / "renders").mkdir(exist_ok=True)
     for i, image in enumerate(renders):
@@ -69,7 +73,7 @@ def cmd_fit(args) -> int:
         args.object,
         metrics["psnr"],
         metrics["ssim"],
-        f"{metrics['chamfer']:.4f}" if "chamfer" in metrics else "n/a",
+        f"{metrics['chamfer']:.4f}" if metrics.get("chamfer") is not None else "n/a",
         result.wall_s,
         out,
     )
@@ -92,12 +96,15 @@ def cmd_demo(args) -> int:
     out = Path(args.out)
     data = out / "data"
     if not (data / "index.json").is_file():
-        main(["data", "synth", "--out", str(data), "--objects", "3", "--views", "91", "--res", str(args.res), "--seed", "0"])
+        code = main(["data", "synth", "--out", str(data), "--objects", "3", "--views", "91", "--res", str(args.res), "--seed", "0"])
+        if code:
+            return code
     from model.data.dataset import load_index
 
     first = load_index(data)[0].id
-    fit_args = ["fit", "--data", str(data), "--object", first, "--out", str(out / "fit"), "--steps", str(args.steps)]
-    main(fit_args)
+    code = main(["fit", "--data", str(data), "--object", first, "--out", str(out / "fit"), "--steps", str(args.steps)])
+    if code:
+        return code
     print(f"demo finished: renders in {out / 'fit' / 'renders'}, mesh {out / 'fit' / 'mesh.glb'}, metrics {out / 'fit' / 'metrics.json'}")
     return 0
 

@@ -30,6 +30,7 @@ training need no more); the reference path is differentiable to any order.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -37,11 +38,15 @@ from dataclasses import asdict, dataclass
 
 import torch
 
+from model import kernels
+
 log = logging.getLogger(__name__)
 
 PRIMES = (1, 2654435761, 805459861)
 # Largest table the kernel indexes with 32-bit row numbers (the uint32 hash is exact up to 2^32).
 MAX_LOG2_TABLE_SIZE = 24
+# Finest resolution accepted: float32 positions still resolve fractions of a cell well below it.
+MAX_RESOLUTION = 2**20 - 1
 KERNEL_FEATURES = (1, 2, 4, 8)
 
 
@@ -60,8 +65,8 @@ class HashGridConfig:
             raise ValueError("levels and features must be positive")
         if not 1 <= self.log2_table_size <= MAX_LOG2_TABLE_SIZE:
             raise ValueError(f"log2_table_size must lie in [1, {MAX_LOG2_TABLE_SIZE}]")
-        if not 1 <= self.base_resolution <= self.finest_resolution:
-            raise ValueError("need 1 <= base_resolution <= finest_resolution")
+        if not 1 <= self.base_resolution <= self.finest_resolution <= MAX_RESOLUTION:
+            raise ValueError(f"need 1 <= base_resolution <= finest_resolution <= {MAX_RESOLUTION}")
         if self.levels == 1 and self.finest_resolution != self.base_resolution:
             raise ValueError("a single level needs finest_resolution == base_resolution")
 
@@ -84,7 +89,7 @@ class HashGridConfig:
             return 1.0
         return math.exp((math.log(self.finest_resolution) - math.log(self.base_resolution)) / (self.levels - 1))
 
-    @property
+    @functools.cached_property
     def resolutions(self) -> tuple[int, ...]:
         """Cells per axis of each level."""
         log_b = math.log(self.per_level_scale)
@@ -92,7 +97,7 @@ class HashGridConfig:
             math.floor(math.exp(math.log(self.base_resolution) + level * log_b) + 1e-9) for level in range(self.levels)
         )
 
-    @property
+    @functools.cached_property
     def dense(self) -> tuple[bool, ...]:
         """Whether each level is stored densely (its (res+1)^3 vertices fit the table)."""
         return tuple((r + 1) ** 3 <= self.table_size for r in self.resolutions)
@@ -121,31 +126,31 @@ def encode_reference(points: torch.Tensor, tables: torch.Tensor, cfg: HashGridCo
     """Pure-PyTorch encoding with the module's semantics; differentiable to any order by autograd."""
     _check(points, tables, cfg)
     dtype = _compute_dtype(points, tables)
-    with torch.autocast(points.device.type, enabled=False):
-        x = torch.nan_to_num(points.to(dtype), nan=0.0).clamp(0.0, 1.0)
-        tables = tables.to(dtype)
-        batch, n = x.shape[:2]
-        t = cfg.table_size
-        # Corner offsets in the same order as the kernel: bit 0 is +x, bit 1 +y, bit 2 +z.
-        offsets = torch.tensor([[(c >> d) & 1 for d in range(3)] for c in range(8)], device=x.device)
-        row_base = (torch.arange(batch, device=x.device) * t).view(batch, 1, 1)
-        out = []
-        for level, (res, dense) in enumerate(zip(cfg.resolutions, cfg.dense)):
-            pos = x * res
-            cell = pos.detach().floor().clamp(max=res - 1)
-            frac = pos - cell
-            vertex = cell.long().unsqueeze(2) + offsets  # [B, N, 8, 3]
-            if dense:
-                rows = vertex[..., 0] + vertex[..., 1] * (res + 1) + vertex[..., 2] * (res + 1) ** 2
-            else:
-                rows = (vertex[..., 0] * PRIMES[0]) ^ (vertex[..., 1] * PRIMES[1]) ^ (vertex[..., 2] * PRIMES[2])
-                rows = rows & (t - 1)
-            corners = tables[:, level].reshape(batch * t, cfg.features).index_select(0, (rows + row_base).view(-1))
-            corners = corners.view(batch, n, 8, cfg.features)
-            axis_w = torch.where(offsets.bool(), frac.unsqueeze(2), 1.0 - frac.unsqueeze(2))  # [B, N, 8, 3]
-            weights = axis_w.prod(dim=-1, keepdim=True)
-            out.append((weights * corners).sum(dim=2))
-        return torch.cat(out, dim=-1)
+    # nan_to_num then clamp: NaN -> 0, and the gradient passes only for coordinates in [0, 1].
+    x = torch.nan_to_num(points.to(dtype), nan=0.0).clamp(0.0, 1.0)
+    tables = tables.to(dtype)
+    batch, n = x.shape[:2]
+    t = cfg.table_size
+    # Corner offsets in the kernel's order: bit 0 is +x, bit 1 +y, bit 2 +z.
+    offsets = torch.tensor([[(c >> d) & 1 for d in range(3)] for c in range(8)], device=x.device)
+    row_base = (torch.arange(batch, device=x.device) * t).view(batch, 1, 1)
+    out = []
+    for level, (res, dense) in enumerate(zip(cfg.resolutions, cfg.dense)):
+        pos = x * res
+        cell = pos.detach().floor().clamp(max=res - 1)
+        frac = pos - cell
+        vertex = cell.long().unsqueeze(2) + offsets  # [B, N, 8, 3], int64
+        if dense:
+            rows = vertex[..., 0] + vertex[..., 1] * (res + 1) + vertex[..., 2] * (res + 1) ** 2
+        else:
+            rows = (vertex[..., 0] * PRIMES[0]) ^ (vertex[..., 1] * PRIMES[1]) ^ (vertex[..., 2] * PRIMES[2])
+            rows = rows & (t - 1)
+        corners = tables[:, level].reshape(batch * t, cfg.features).index_select(0, (rows + row_base).view(-1))
+        corners = corners.view(batch, n, 8, cfg.features)
+        axis_w = torch.where(offsets.bool(), frac.unsqueeze(2), 1.0 - frac.unsqueeze(2))  # [B, N, 8, 3]
+        weights = axis_w.prod(dim=-1, keepdim=True)
+        out.append((weights * corners).sum(dim=2))
+    return torch.cat(out, dim=-1)
 
 
 class _HashGridFunction(torch.autograd.Function):
@@ -168,13 +173,12 @@ class _HashGridFunction(torch.autograd.Function):
         return (grad_points if need_points else None), (grad_tables if need_tables else None), None, None
 
 
+# Why the kernel is unavailable in this process, once a build or load has failed.
 _KERNEL_FAILURE: list[str] = []
 
 
 def _kernel_ops():
-    from model.kernels import hashgrid_ops
-
-    return hashgrid_ops()
+    return kernels.hashgrid_ops()
 
 
 def _kernel_available() -> bool:
@@ -186,8 +190,8 @@ def _kernel_available() -> bool:
     except Exception as exc:  # any build or load failure means the slow path, not a crash
         _KERNEL_FAILURE.append(f"{type(exc).__name__}: {exc}")
         log.warning(
-            "hash encoding: the C++ kernel could not be built or loaded (%s); using the pure-PyTorch "
-            "reference, which is 100x slower on CPU",
+            "hash encoding: the C++ kernel could not be built or loaded (%s); falling back to the "
+            "pure-PyTorch reference, which is about 50x slower on CPU",
             _KERNEL_FAILURE[0].splitlines()[0],
         )
         return False
@@ -222,6 +226,7 @@ def _check(points: torch.Tensor, tables: torch.Tensor, cfg: HashGridConfig) -> N
     if points.dim() != 3 or points.shape[-1] != 3:
         raise ValueError(f"points must be [B, N, 3], got {tuple(points.shape)}")
     if tables.dim() != 4 or tuple(tables.shape[1:]) != cfg.table_shape or tables.shape[0] != points.shape[0]:
-        raise ValueError(f"tables must be [{points.shape[0]}, {', '.join(map(str, cfg.table_shape))}], got {tuple(tables.shape)}")
+        expected = (points.shape[0], *cfg.table_shape)
+        raise ValueError(f"tables must be {list(expected)}, got {list(tables.shape)}")
     if points.device != tables.device:
         raise ValueError("points and tables must be on the same device")

@@ -99,7 +99,13 @@ class _MaintainedGrid:
     @torch.no_grad()
     def update(self, density_fn, generator: torch.Generator) -> None:
         fresh = max_cell_density(
-            density_fn, self.cfg.grid_resolution, self.hull.box_min, self.hull.box_max, samples_per_cell=1, generator=generator
+            density_fn,
+            self.cfg.grid_resolution,
+            self.hull.box_min,
+            self.hull.box_max,
+            cells=self.hull.occupied,  # cells outside the hull stay empty whatever their density
+            samples_per_cell=1,
+            generator=generator,
         )
         decayed = torch.where(torch.isinf(self.cell_density), fresh, self.cell_density * self.cfg.grid_decay)
         self.cell_density = torch.maximum(decayed, fresh)

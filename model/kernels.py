@@ -1,13 +1,15 @@
 """Just-in-time build and lazy loading of the fused C++ CPU kernels in ``model/csrc``.
 
 The kernels are torch C++ extensions compiled with ``torch.utils.cpp_extension.load`` (ninja)
-the first time they are needed, never inside pip's isolated build (the extension must match the
-torch that runs it). Each build lands in its own folder under the cache
-(``$HYPNERF_CACHE`` or ``~/.cache/hypnerf/ext``) named by a hash of everything that changes the
-binary: the sources, the compiler flags, the compiler, torch, Python and, because the code is
-built with ``-march=native``, the CPU model and its instruction-set flags. Editing a source or
-moving the cache to another machine therefore rebuilds instead of loading a stale or
-unsupported binary. Later processes load the finished library directly without invoking ninja.
+the first time they are needed, never inside pip's isolated build: the binary must match the
+torch that runs it. Each build lands in the cache (``$HYPNERF_CACHE`` or ``~/.cache/hypnerf/ext``)
+under a name keyed by a hash of everything that changes the binary: every file in ``model/csrc``,
+the compiler flags, the compiler, torch, Python and, because the code is built with
+``-march=native``, the CPU model and its instruction-set flags. Editing a source, or reaching the
+same cache from another machine, therefore rebuilds instead of loading a stale or unsupported
+binary. A build happens in a private folder and the finished library is moved into place
+atomically, so concurrent processes never see a half-written file; later processes load it
+directly without running ninja.
 
 ``python -m model.kernels`` builds everything ahead of time.
 """
@@ -19,8 +21,11 @@ import hashlib
 import logging
 import os
 import platform
+import shutil
 import subprocess
 import sys
+import tempfile
+import threading
 from pathlib import Path
 
 import torch
@@ -28,11 +33,14 @@ import torch
 log = logging.getLogger(__name__)
 
 CSRC = Path(__file__).resolve().parent / "csrc"
-# -ffp-contract=off keeps the arithmetic in the same rounding as the PyTorch reference.
+# -ffp-contract=off: a fused x * res - cell would compute the cell fraction from an unrounded
+# product, which can disagree with the cell chosen from the rounded one (and with the reference).
 CFLAGS = ("-O3", "-march=native", "-fopenmp", "-ffp-contract=off")
 LDFLAGS = ("-fopenmp",)
 HASHGRID_SOURCES = ("hashgrid.cpp",)
 HASHGRID_NAMESPACE = "hypnerf_hashgrid"
+
+_build_lock = threading.Lock()
 
 
 def cache_root() -> Path:
@@ -46,7 +54,7 @@ def _cpu_identity() -> str:
     try:
         lines = Path("/proc/cpuinfo").read_text().splitlines()
     except OSError:
-        return platform.processor() or platform.machine()
+        return f"{platform.machine()} {platform.processor()}"
     wanted = ("model name", "flags", "Features", "CPU part")
     return "\n".join(sorted({line for line in lines if line.split(":")[0].strip() in wanted}))
 
@@ -60,40 +68,52 @@ def _compiler_identity() -> str:
         return cxx
 
 
-def build_key(sources: tuple[str, ...]) -> str:
-    """Hex digest identifying one binary build of ``sources`` on this machine."""
+def build_key() -> str:
+    """Hex digest identifying the binaries built from ``model/csrc`` on this machine."""
     h = hashlib.sha256()
-    for name in sources:
-        h.update(name.encode())
-        h.update((CSRC / name).read_bytes())
+    for path in sorted(p for p in CSRC.iterdir() if p.is_file()):
+        h.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
     for part in (" ".join(CFLAGS), " ".join(LDFLAGS), _compiler_identity(), _cpu_identity(), torch.__version__,
                  sys.version):
-        h.update(b"\0" + part.encode())
+        h.update(part.encode() + b"\0")
     return h.hexdigest()[:20]
 
 
+def library_path(stem: str) -> Path:
+    """Where the compiled library for extension ``stem`` lives (or will live) in the cache."""
+    name = f"{stem}_{build_key()}"
+    return cache_root() / name / f"{name}.so"
+
+
 def _build_or_load(stem: str, sources: tuple[str, ...]) -> Path:
-    """Path of the loaded shared library for ``sources``, compiling it first if needed."""
-    name = f"{stem}_{build_key(sources)}"
-    folder = cache_root() / name
-    library = folder / f"{name}.so"
-    # A lock file means another process is still compiling into this folder: let load() wait on it.
-    if library.exists() and not (folder / "lock").exists():
+    """Load the shared library of ``stem``, compiling it first if the cache lacks it."""
+    library = library_path(stem)
+    if library.exists():
         torch.ops.load_library(str(library))
         return library
     from torch.utils import cpp_extension
 
-    folder.mkdir(parents=True, exist_ok=True)
-    log.warning("compiling the %s C++ extension into %s (first use on this machine; takes a minute)", stem, folder)
-    cpp_extension.load(
-        name=name,
-        sources=[str(CSRC / s) for s in sources],
-        extra_cflags=list(CFLAGS),
-        extra_ldflags=list(LDFLAGS),
-        build_directory=str(folder),
-        is_python_module=False,
-        verbose=False,
-    )
+    library.parent.mkdir(parents=True, exist_ok=True)
+    log.warning("compiling the %s C++ extension into %s (first use with these sources; takes a minute)",
+                stem, library.parent)
+    build_dir = Path(tempfile.mkdtemp(prefix="build-", dir=library.parent))
+    try:
+        name = library.stem
+        cpp_extension.load(
+            name=name,
+            sources=[str(CSRC / s) for s in sources],
+            extra_cflags=list(CFLAGS),
+            extra_ldflags=list(LDFLAGS),
+            build_directory=str(build_dir),
+            is_python_module=False,
+            verbose=False,
+        )
+        staged = library.with_suffix(f".{os.getpid()}.tmp")
+        shutil.copyfile(build_dir / f"{name}.so", staged)
+        os.replace(staged, library)
+    finally:
+        shutil.rmtree(build_dir, ignore_errors=True)
+    log.info("built %s", library)
     return library
 
 
@@ -104,7 +124,8 @@ def hashgrid_ops():
     Raises whatever the build raised (no compiler, missing headers...); callers decide whether
     to fall back.
     """
-    _build_or_load("hashgrid", HASHGRID_SOURCES)
+    with _build_lock:
+        _build_or_load("hashgrid", HASHGRID_SOURCES)
     return getattr(torch.ops, HASHGRID_NAMESPACE)
 
 

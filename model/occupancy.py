@@ -92,12 +92,19 @@ def max_cell_density(
     box_min: torch.Tensor,
     box_max: torch.Tensor,
     *,
+    cells: torch.Tensor | None = None,
     samples_per_cell: int = 2,
     generator: torch.Generator | None = None,
     chunk: int = 1 << 16,
 ) -> torch.Tensor:
-    """Largest density seen per cell, ``[G, G, G]``: at the centre plus jittered points inside it."""
+    """Largest density seen per cell, ``[G, G, G]``: at the centre plus jittered points inside it.
+
+    ``cells`` (a boolean ``[G, G, G]`` mask) limits the evaluation to those cells; the others read 0.
+    """
     centers = cell_centers(resolution, box_min, box_max)
+    index = cells.reshape(-1).nonzero().squeeze(1) if cells is not None else None
+    if index is not None:
+        centers = centers[index]
     size = (box_max - box_min) / resolution
     best = torch.zeros(centers.shape[0], device=centers.device)
     for sample in range(samples_per_cell):
@@ -109,6 +116,8 @@ def max_cell_density(
         for start in range(0, points.shape[0], chunk):
             part = density_fn(points[start : start + chunk]).float()
             best[start : start + chunk] = torch.maximum(best[start : start + chunk], part)
+    if index is not None:
+        best = torch.zeros(resolution**3, device=best.device).index_copy(0, index, best)
     return best.reshape(resolution, resolution, resolution)
 
 

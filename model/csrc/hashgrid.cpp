@@ -13,19 +13,20 @@
 // product, and of an XOR of products, are the same whether taken mod 2^32 or in int64; row
 // offsets into the tables are 64-bit.
 //
-// Each chunk of kChunk points goes through the levels one after another, so the level's table
-// stays in L1 while the chunk is processed, and chunk scratch lives on the stack: steady-state
-// calls touch no freshly allocated memory apart from the returned tensors. float32 with F = 2
-// runs the AVX-512 path where the CPU has it (hashgrid_avx512.h); everything else runs the
-// portable path (hashgrid_portable.h).
+// Each chunk of kChunk points goes through all levels, one level after another, before the next
+// chunk; chunk scratch lives on the stack, so calls allocate nothing beyond the returned tensors
+// and the backward's table copies. float32 with F = 2 runs the AVX-512 path where the CPU has it
+// (hashgrid_avx512.h); everything else runs the portable path (hashgrid_portable.h).
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
-#include <ATen/ops/zeros.h>
-#include <omp.h>
 #include <torch/library.h>
+
+#include <memory>
+#include <type_traits>
+#include <vector>
 
 #include "hashgrid_avx512.h"
 #include "hashgrid_common.h"
@@ -54,6 +55,9 @@ struct Problem {
   int64_t chunks() const { return (n + kChunk - 1) / kChunk; }
 };
 
+// Chunks are handed to threads on demand: on a shared machine a thread may lose its core for a
+// while, and static shares would leave the other thread waiting. Outputs of different points are
+// independent, so the schedule cannot change the result.
 template <typename Levels, typename T>
 void forward_impl(const Problem& pb, const T* points, const T* tables, T* out) {
   const int L = pb.num_levels(), width = pb.width();
@@ -62,7 +66,7 @@ void forward_impl(const Problem& pb, const T* points, const T* tables, T* out) {
 #pragma omp parallel num_threads(at::get_num_threads()) if (total > 1)
   {
     ChunkPoints<T> cp;
-#pragma omp for schedule(static)
+#pragma omp for schedule(dynamic, 1)
     for (int64_t job = 0; job < total; ++job) {
       const int64_t b = job / chunks, p0 = (job % chunks) * kChunk;
       cp.load(points + (b * pb.n + p0) * 3, static_cast<int>(std::min<int64_t>(kChunk, pb.n - p0)));
@@ -75,29 +79,41 @@ void forward_impl(const Problem& pb, const T* points, const T* tables, T* out) {
   }
 }
 
+// The table gradient is a scatter-add into small tables, so instead of atomics the work is cut
+// into units (an object, or a contiguous run of one object's chunks) that each accumulate into
+// their own copy of the object's tables; when an object has several units their copies are then
+// summed in a fixed order. Units are handed to threads on demand like forward chunks; since a
+// unit's sum does not depend on which thread ran it, results are deterministic for a given
+// thread count. Units per object: enough to keep every thread busy, and more (up to 4 per
+// thread) for load balance only while each unit keeps max(16384, 4 T) points, so that zeroing and
+// summing the extra table copies stays a small part of the work and of the memory.
 template <typename Levels, typename T>
 void backward_impl(const Problem& pb, const T* grad, const T* points, const T* tables, T* grad_tables,
                    T* grad_points) {
+  const int64_t min_unit_points = std::max<int64_t>(16384, 4 * pb.table_size);
   const int L = pb.num_levels(), width = pb.width();
   const int64_t F = pb.features, chunks = pb.chunks(), table_numel = pb.table_numel();
   const auto mask = static_cast<uint32_t>(pb.table_size - 1);
-  const int threads = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), chunks)));
-  // Per-thread accumulators for the table gradient (thread 0 adds straight into the output):
-  // the tables are small, so private copies plus a reduction beat atomics and cannot race.
-  std::vector<T> scratch(grad_tables ? static_cast<size_t>(threads - 1) * table_numel : 0);
+  const int threads = at::get_num_threads();
+  auto ceil_div = [](int64_t a, int64_t b) { return (a + b - 1) / b; };
+  const int64_t balanced = std::min(ceil_div(4 * threads, pb.batch), pb.n / min_unit_points);
+  const int64_t per_object = std::min(chunks, std::max(ceil_div(threads, pb.batch), balanced));
+  const int64_t units = pb.batch * per_object;
+  const bool reduce = grad_tables && per_object > 1;
+  std::unique_ptr<T[]> scratch(reduce ? new T[units * table_numel] : nullptr);
 #pragma omp parallel num_threads(threads)
   {
-    const int tid = omp_get_thread_num();
     ChunkPoints<T> cp;
     alignas(64) T gx[kChunk], gy[kChunk], gz[kChunk];
-    for (int64_t b = 0; b < pb.batch; ++b) {
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t unit = 0; unit < units; ++unit) {
+      const int64_t b = unit / per_object, part = unit % per_object;
       T* acc = nullptr;
       if (grad_tables) {
-        acc = tid == 0 ? grad_tables + b * table_numel : scratch.data() + (tid - 1) * table_numel;
-        if (tid != 0) std::fill(acc, acc + table_numel, T(0));
+        acc = reduce ? scratch.get() + unit * table_numel : grad_tables + b * table_numel;
+        std::fill(acc, acc + table_numel, T(0));
       }
-#pragma omp for schedule(static)
-      for (int64_t chunk = 0; chunk < chunks; ++chunk) {
+      for (int64_t chunk = part * chunks / per_object; chunk < (part + 1) * chunks / per_object; ++chunk) {
         const int64_t p0 = chunk * kChunk;
         const T* pts = points + (b * pb.n + p0) * 3;
         cp.load(pts, static_cast<int>(std::min<int64_t>(kChunk, pb.n - p0)));
@@ -118,14 +134,16 @@ void backward_impl(const Problem& pb, const T* grad, const T* points, const T* t
             gp[3 * p + 2] = gz[p] * inside01(pts[3 * p + 2]);
           }
         }
-      }  // implicit barrier: every thread's accumulator for object b is complete
-      if (grad_tables && threads > 1) {
-        T* out = grad_tables + b * table_numel;
-#pragma omp for schedule(static)
+      }
+    }  // implicit barrier: every unit is complete
+    if (reduce) {
+#pragma omp for collapse(2) schedule(static)
+      for (int64_t b = 0; b < pb.batch; ++b) {
         for (int64_t e = 0; e < table_numel; ++e) {
-          T s = out[e];
-          for (int t = 0; t < threads - 1; ++t) s += scratch[t * table_numel + e];
-          out[e] = s;
+          const T* copies = scratch.get() + b * per_object * table_numel + e;
+          T sum = copies[0];
+          for (int64_t s = 1; s < per_object; ++s) sum += copies[s * table_numel];
+          grad_tables[b * table_numel + e] = sum;
         }
       }
     }
@@ -192,10 +210,11 @@ std::tuple<at::Tensor, at::Tensor> hashgrid_backward(const at::Tensor& grad, con
                   grad.size(0) == B && grad.size(1) == N && grad.size(2) == L * F,
               "grad must be a contiguous [B, N, L*F] tensor of the points' dtype");
   // Outputs that are not requested stay empty.
-  auto grad_tables = need_tables ? at::zeros(tables.sizes(), tables.options()) : at::empty({0}, tables.options());
+  auto grad_tables = need_tables ? at::empty(tables.sizes(), tables.options()) : at::empty({0}, tables.options());
   auto grad_points = need_points ? at::empty(points.sizes(), points.options()) : at::empty({0}, points.options());
   if (N == 0 || L == 0 || !(need_tables || need_points)) {
-    if (need_points) grad_points.zero_();
+    grad_tables.zero_();
+    grad_points.zero_();
     return {grad_tables, grad_points};
   }
   const auto levels = make_levels(resolutions, dense);

@@ -1,12 +1,12 @@
 // AVX-512 per-level hash-grid kernels for float32 with F = 2 features (the paper setting).
 //
 // Eight points are processed per vector. A table row of two floats is one 64-bit unit, so a
-// 512-bit register holds the rows of 8 points side by side ("pair layout": lanes 2k, 2k+1 belong
-// to point k) and a corner costs 8 scalar 64-bit loads; on the CPUs measured (AMD Zen 4) these
-// beat hardware gathers, which is also why the compiler's own vectorisation of the portable loop
-// is slow here. Index arithmetic runs in 256-bit registers (8 x uint32); see hashgrid.cpp for why
-// uint32 hashing is exact. Numerically identical cell choice to the portable path; sums differ
-// only in rounding (fused multiply-adds).
+// 512-bit register holds the rows of 8 points side by side ("pair layout": lanes 2k, 2k + 1
+// belong to point k) and a corner costs 8 scalar 64-bit loads; on the CPU measured (AMD Zen 4)
+// these beat hardware gathers, and the compiler's own vectorisation of the portable loop, which
+// gathers float by float, ran at about half this speed. Cell and row arithmetic runs on 8 x uint32
+// in 256-bit registers (see hashgrid.cpp for why uint32 hashing is exact) and chooses the same
+// cells as the portable path; sums differ from it only by rounding (fused multiply-adds).
 #pragma once
 
 #if defined(__AVX512F__) && defined(__AVX2__)
@@ -56,7 +56,7 @@ struct Avx512PairLevels {
       const __m256i sz = _mm256_set1_epi32(static_cast<int>(lv.stride_z));
       const __m256i base =
           _mm256_add_epi32(ix, _mm256_add_epi32(_mm256_mullo_epi32(iy, sy), _mm256_mullo_epi32(iz, sz)));
-      #pragma GCC unroll 8
+#pragma GCC unroll 8
       for (int c = 0; c < 8; ++c) {
         const uint32_t off = (c & 1) + ((c >> 1) & 1) * lv.stride_y + ((c >> 2) & 1) * lv.stride_z;
         _mm256_store_si256(reinterpret_cast<__m256i*>(k.rows[c]),
@@ -70,7 +70,7 @@ struct Avx512PairLevels {
       const __m256i y0 = _mm256_mullo_epi32(iy, py), z0 = _mm256_mullo_epi32(iz, pz);
       const __m256i hy[2] = {y0, _mm256_add_epi32(y0, py)};
       const __m256i hz[2] = {z0, _mm256_add_epi32(z0, pz)};
-      #pragma GCC unroll 8
+#pragma GCC unroll 8
       for (int c = 0; c < 8; ++c) {
         const __m256i h = _mm256_xor_si256(_mm256_xor_si256(hx[c & 1], hy[(c >> 1) & 1]), hz[(c >> 2) & 1]);
         _mm256_store_si256(reinterpret_cast<__m256i*>(k.rows[c]), _mm256_and_si256(h, mask));
@@ -95,22 +95,40 @@ struct Avx512PairLevels {
     return _mm512_castpd_ps(_mm512_insertf64x4(_mm512_castpd256_pd512(_mm256_castps_pd(lo)), _mm256_castps_pd(hi), 1));
   }
 
+  // Table rows rows[0..7]; the row numbers are read two per 64-bit load to spare load slots.
+  static inline __m512 load_rows(const float* tab, const uint32_t* rows) {
+    uint64_t r[4];
+    std::memcpy(r, rows, sizeof(r));
+    return load_pairs(tab, [&r](int j) { return static_cast<uint32_t>(r[j >> 1] >> (32 * (j & 1))); });
+  }
+
+  // The 128-bit quarter q (points 2q and 2q + 1) of a pair-layout register.
+  static inline __m128 quarter(__m512 v, int q) {
+    switch (q) {
+      case 0: return _mm512_castps512_ps128(v);
+      case 1: return _mm512_extractf32x4_ps(v, 1);
+      case 2: return _mm512_extractf32x4_ps(v, 2);
+      default: return _mm512_extractf32x4_ps(v, 3);
+    }
+  }
+
   static void forward(const LevelJob<float>& job, float* out) {
     const float* tab = job.table;
     const int n = job.points->n, width = job.width;
     Corners k;
-    alignas(64) float lanes[16];
     for (int p = 0; p < n; p += 8) {
       locate(job, p, k);
-      __m512 acc = _mm512_setzero_ps();
-      #pragma GCC unroll 8
-      for (int c = 0; c < 8; ++c) {
-        const uint32_t* r = k.rows[c];
-        acc = _mm512_fmadd_ps(corner_weight(k, c), load_pairs(tab, [r](int j) { return r[j]; }), acc);
-      }
-      _mm512_store_ps(lanes, acc);
+      __m512 acc = _mm512_mul_ps(corner_weight(k, 0), load_rows(tab, k.rows[0]));
+#pragma GCC unroll 7
+      for (int c = 1; c < 8; ++c) acc = _mm512_fmadd_ps(corner_weight(k, c), load_rows(tab, k.rows[c]), acc);
+      // Straight from registers to the 8 output rows (no round trip through the stack).
       const int count = std::min(8, n - p);
-      for (int j = 0; j < count; ++j) std::memcpy(out + (p + j) * width, lanes + 2 * j, 2 * sizeof(float));
+#pragma GCC unroll 4
+      for (int q = 0; q < 4; ++q) {
+        const __m128 v = quarter(acc, q);
+        if (2 * q < count) _mm_storel_pi(reinterpret_cast<__m64*>(out + (p + 2 * q) * width), v);
+        if (2 * q + 1 < count) _mm_storeh_pi(reinterpret_cast<__m64*>(out + (p + 2 * q + 1) * width), v);
+      }
     }
   }
 
@@ -121,40 +139,45 @@ struct Avx512PairLevels {
     const __m512i even = _mm512_set_epi32(0, 0, 0, 0, 0, 0, 0, 0, 14, 12, 10, 8, 6, 4, 2, 0);
     const float resf = static_cast<float>(job.level->res);
     Corners k;
-    alignas(64) float lanes[16];
     for (int p = 0; p < n; p += 8) {
       locate(job, p, k);
       const int count = std::min(8, n - p);
       // Upstream gradient rows of the 8 points (padding lanes re-read the last real point).
       const int row_pairs = width / 2;
-      const __m512 g = load_pairs(grad, [=](int j) { return static_cast<size_t>(p + std::min(j, count - 1)) * row_pairs; });
+      const __m512 g =
+          load_pairs(grad, [=](int j) { return static_cast<size_t>(p + std::min(j, count - 1)) * row_pairs; });
       if (table_grad) {
-        #pragma GCC unroll 8
+#pragma GCC unroll 8
         for (int c = 0; c < 8; ++c) {
-          _mm512_store_ps(lanes, _mm512_mul_ps(corner_weight(k, c), g));
-          // One point at a time: two points may share a row.
-          for (int j = 0; j < count; ++j) {
-            auto* dst = reinterpret_cast<__m64*>(table_grad + 2 * static_cast<size_t>(k.rows[c][j]));
-            const __m128 add = _mm_loadl_pi(_mm_setzero_ps(), reinterpret_cast<const __m64*>(lanes + 2 * j));
-            _mm_storel_pi(dst, _mm_add_ps(_mm_loadl_pi(_mm_setzero_ps(), dst), add));
+          const __m512 contrib = _mm512_mul_ps(corner_weight(k, c), g);
+          // One point at a time, in order: two points may share a row.
+#pragma GCC unroll 4
+          for (int q = 0; q < 4; ++q) {
+            const __m128 lo = quarter(contrib, q);
+            const __m128 parts[2] = {lo, _mm_movehl_ps(lo, lo)};
+#pragma GCC unroll 2
+            for (int h = 0; h < 2; ++h) {
+              if (2 * q + h >= count) break;
+              auto* dst = reinterpret_cast<__m64*>(table_grad + 2 * static_cast<size_t>(k.rows[c][2 * q + h]));
+              _mm_storel_pi(dst, _mm_add_ps(_mm_loadl_pi(_mm_setzero_ps(), dst), parts[h]));
+            }
           }
         }
       }
       if (gx) {
         // dot_c = <g, row_c> in both lanes of each pair (swap the pair's halves and add).
         __m512 dot[8];
-        #pragma GCC unroll 8
+#pragma GCC unroll 8
         for (int c = 0; c < 8; ++c) {
-          const uint32_t* r = k.rows[c];
-          const __m512 prod = _mm512_mul_ps(g, load_pairs(tab, [r](int j) { return r[j]; }));
+          const __m512 prod = _mm512_mul_ps(g, load_rows(tab, k.rows[c]));
           dot[c] = _mm512_add_ps(prod, _mm512_permute_ps(prod, 0xB1));
         }
         // Derivative of the trilinear weights: differences along an axis, weighted by the
         // other two axes.
         __m512 dx = _mm512_setzero_ps(), dy = _mm512_setzero_ps(), dz = _mm512_setzero_ps();
-        #pragma GCC unroll 2
+#pragma GCC unroll 2
         for (int a = 0; a < 2; ++a) {
-          #pragma GCC unroll 2
+#pragma GCC unroll 2
           for (int b = 0; b < 2; ++b) {
             dx = _mm512_fmadd_ps(_mm512_sub_ps(dot[1 | a << 1 | b << 2], dot[a << 1 | b << 2]),
                                  _mm512_mul_ps(k.wy[a], k.wz[b]), dx);

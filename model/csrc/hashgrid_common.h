@@ -1,20 +1,19 @@
 // Shared definitions of the hash-grid kernels: level constants, the clamping rule, cell lookup,
 // corner rows and trilinear weights. These encode the semantics documented in model/encoding.py;
-// every code path (portable and AVX-512) is built from them.
+// the portable path uses them directly and the AVX-512 path mirrors them lane by lane.
 #pragma once
 
 #include <algorithm>
 #include <cstdint>
-#include <vector>
 
 namespace hashgrid {
 
 constexpr uint32_t kPrimeY = 2654435761u;
 constexpr uint32_t kPrimeZ = 805459861u;
-// Points per chunk: a chunk's coordinates, the current level's table (16 KB at T = 2^11, F = 2)
-// and the chunk's output rows stay in L1/L2 while every level is processed.
-constexpr int kChunk = 64;
-// Chunk arrays are padded to a multiple of this many points so vector loops need no remainder.
+// Points per chunk: all levels are processed for one chunk before the next, so its coordinates
+// and output rows stay in cache; measured 5-10% faster than 64 points, flat up to 1024.
+constexpr int kChunk = 256;
+// Chunk arrays are padded to a multiple of this many points so vector loads stay in bounds.
 constexpr int kPad = 16;
 
 struct Level {
@@ -82,8 +81,9 @@ struct ChunkPoints {
   }
 };
 
-// Where one chunk's data lives for a level: its points, the object's table for the level, and
-// row-major [point][L*F] views of the output or upstream gradient starting at the level's column.
+// One chunk at one level: its points and the object's table for the level. The output and the
+// upstream gradient are passed alongside as pointers to the chunk's first row at the level's
+// column, rows being `width` apart.
 template <typename T>
 struct LevelJob {
   const ChunkPoints<T>* points;

@@ -1,0 +1,19 @@
+"""``make bench``: every benchmark in turn, then BENCHMARKS.md from their results."""
+
+from __future__ import annotations
+
+import sys
+
+from benchmarks import bench_encoding, bench_fit, bench_render, report
+
+
+def main() -> int:
+    for step in (bench_encoding.main, bench_fit.main, bench_render.main):
+        code = step([]) if step is bench_fit.main else step()
+        if code:
+            return code
+    return report.main()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
