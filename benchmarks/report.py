@@ -9,7 +9,7 @@ from benchmarks.common import RESULTS, ROOT
 
 COMMANDS = {
     "encoding": "make bench  (or: python -m benchmarks.bench_encoding)",
-    "fit": "python -m benchmarks.bench_fit --objects 6 --steps 2000",
+    "fit": "python -m benchmarks.bench_fit --objects 6 --steps 2000  (runs hypnerf fit per object)",
     "render": "python -m benchmarks.bench_render  (runs: hypnerf bench render --fit runs/bench-fit/<first chair> --json benchmarks/results/render.json)",
 }
 
@@ -59,6 +59,7 @@ def fit_section(data: dict) -> list[str]:
         "",
         f"{data['steps']} steps, {data['threads']} threads; PSNR/SSIM on the fixed held-out views; Chamfer in scene-box units.",
         "",
+        *([data["note"], ""] if data.get("note") else []),
         "| object | PSNR (dB) | SSIM | Chamfer | fit wall (s) |",
         "|---|---|---|---|---|",
     ]
