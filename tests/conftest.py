@@ -32,8 +32,7 @@ def constant_field(cfg: FieldConfig, sigma: float, logit: float = 0.0) -> dict[s
     params["density1"][..., 0] = math.log(sigma) / cfg.hidden
     params["color0"] = torch.zeros_like(params["color0"])
     params["color1"] = torch.zeros_like(params["color1"])
-    params["color2"] = torch.full_like(params["color2"], 0.0)
-    params["color2"][..., :] = 0.0
+    params["color2"] = torch.zeros_like(params["color2"])
     if logit:
         params["color0"][..., 0, :] = 1.0  # SH band 0 is a constant: a view-independent bias
         params["color1"] = torch.eye(cfg.color_hidden)[None].clone()
