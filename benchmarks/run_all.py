@@ -8,8 +8,9 @@ from benchmarks import bench_encoding, bench_fit, bench_render, report
 
 
 def main() -> int:
-    for step in (bench_encoding.main, bench_fit.main, bench_render.main):
-        code = step([]) if step is bench_fit.main else step()
+    steps = (lambda: bench_encoding.main([]), lambda: bench_fit.main([]), bench_render.main)
+    for step in steps:
+        code = step()
         if code:
             return code
     return report.main()

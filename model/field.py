@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from typing import ClassVar
 
 import torch
 
@@ -49,6 +50,16 @@ def truncated_exp(x: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class FieldConfig:
+    """The hash-grid field (MRHE + small MLPs).
+
+    Every field kind (see ``model.fields``) offers the same methods, which the renderer, the fits
+    and the hypernetwork use: ``param_shapes``, ``shape_param_names`` / ``color_param_names`` (which
+    code drives which tensor), ``init_params``, ``density``, ``view_term``, ``color_from_view_term``,
+    ``to_dict`` / ``from_dict``.
+    """
+
+    kind: ClassVar[str] = "hashgrid"
+
     encoding: HashGridConfig = field(default_factory=HashGridConfig)
     hidden: int = 64
     geo_features: int = 15
@@ -69,18 +80,41 @@ class FieldConfig:
             "color2": (self.color_hidden, 3),
         }
 
+    def param_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Per-object shape of every emitted tensor (no batch dimension), in emission order."""
+        return {"tables": tuple(self.encoding.table_shape), **self.weight_shapes()}
+
+    def shape_param_names(self) -> list[str]:
+        """Tensors that hold geometry (the hypernetwork drives them from the shape code)."""
+        return ["tables", "density0", "density1"]
+
+    def color_param_names(self) -> list[str]:
+        """Tensors that hold appearance (driven by the colour code)."""
+        return ["color0", "color1", "color2"]
+
     def param_count(self) -> int:
-        tables = math.prod(self.encoding.table_shape)
-        return tables + sum(i * o for i, o in self.weight_shapes().values())
+        return sum(math.prod(shape) for shape in self.param_shapes().values())
+
+    def init_params(self, batch: int = 1, *, generator=None, device=None) -> FieldParams:
+        return init_params(self, batch, generator=generator, device=device)
+
+    def density(self, params: FieldParams, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return density(params, points, self)
+
+    def view_term(self, params: FieldParams, directions: torch.Tensor) -> torch.Tensor:
+        return view_term(params, directions, self)
+
+    def color_from_view_term(self, params: FieldParams, geo: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        return color_from_view_term(params, geo, view, self)
 
     def to_dict(self) -> dict:
-        out = asdict(self)
+        out = {"kind": self.kind, **asdict(self)}
         out["encoding"] = self.encoding.to_dict()
         return out
 
     @classmethod
     def from_dict(cls, data: dict) -> "FieldConfig":
-        data = dict(data)
+        data = {k: v for k, v in data.items() if k != "kind"}
         data["encoding"] = HashGridConfig.from_dict(data.get("encoding", {}))
         return cls(**data)
 
@@ -97,7 +131,7 @@ def init_params(cfg: FieldConfig, batch: int = 1, *, generator=None, device=None
 
 def validate_params(cfg: FieldConfig, params: FieldParams) -> int:
     """Check names and shapes against the config; return the object count ``B``."""
-    expected = {"tables": tuple(cfg.encoding.table_shape), **cfg.weight_shapes()}
+    expected = cfg.param_shapes()
     if set(params) != set(expected):
         raise ValueError(f"field parameters must be exactly {sorted(expected)}, got {sorted(params)}")
     batch = params["tables"].shape[0]

@@ -14,7 +14,6 @@ import torch
 import torch.nn.functional as F
 
 
-
 @dataclass
 class OccupancyGrid:
     """Boolean grid ``occupied [G, G, G]`` indexed ``[x, y, z]`` over the box ``[box_min, box_max]``."""
@@ -42,8 +41,13 @@ class OccupancyGrid:
 
     def lookup(self, points: torch.Tensor) -> torch.Tensor:
         """Whether each point of ``points [..., 3]`` lies in an occupied cell; outside the box is empty."""
-        inside = ((points >= self.box_min) & (points <= self.box_max)).all(dim=-1)
-        return self.occupied.reshape(-1)[self.cell_index(points)] & inside
+        g = self.resolution
+        cell = (points - self.box_min) * (g / (self.box_max - self.box_min))
+        inside = ((cell >= 0) & (cell <= g)).all(dim=-1)
+        # truncation is floor for the points that count (inside the box); the clamp keeps the rest
+        # (and x = G on the far faces) in range
+        cell = cell.long().clamp_(0, g - 1)
+        return self.occupied.reshape(-1)[(cell[..., 0] * g + cell[..., 1]) * g + cell[..., 2]] & inside
 
     def tight_box(self) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Bounding box of the occupied cells, or ``None`` when nothing is occupied."""

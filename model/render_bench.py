@@ -1,9 +1,15 @@
 """Renderer speed against error on a fitted object: the renderer's shortcuts one by one.
 
-Every mode renders the same held-out views of the same fitted field; the time is the median
+Every mode renders the same held-out views of the same fitted NeRF; the time is the median
 milliseconds per image over repeats (one process, same threads), the error is PSNR against the
-ground-truth views. ``dense`` is the plain renderer: samples spread over the whole scene box, no
-occupancy grid, no early termination, colour evaluated at every sample.
+ground-truth views.
+
+The occupancy grid is part of a fitted NeRF, as in InstantNGP: its empty cells hold no density.
+``dense`` is the reference renderer of that model: samples spread over the whole scene box, the
+field evaluated at every one of them (density then zeroed in empty cells), no early termination,
+colour at every sample. The shortcut modes must match its PSNR while skipping work;
+``dense-no-grid`` drops the grid from the model to show what it removes (haze where no training
+ray ever looked).
 """
 
 from __future__ import annotations
@@ -21,15 +27,17 @@ from model.renderer import DENSE, RenderConfig
 
 FAST = RenderConfig()
 
-MODES: dict[str, RenderConfig] = {
-    "dense": DENSE,
-    "dense-64": replace(DENSE, samples_per_ray=64),
-    "occupancy": replace(DENSE, use_occupancy=True),
-    "occupancy+termination": replace(FAST, color_weight_threshold=0.0),
-    "fast": FAST,
-    "fast-64": replace(FAST, samples_per_ray=64),
-    "fast-256": replace(FAST, samples_per_ray=256),
-    "fast-term1e-2": replace(FAST, termination_threshold=1e-2, color_weight_threshold=1e-3),
+# mode -> (render settings, whether the NeRF keeps its occupancy grid)
+MODES: dict[str, tuple[RenderConfig, bool]] = {
+    "dense": (DENSE, True),
+    "dense-64": (replace(DENSE, samples_per_ray=64), True),
+    "dense-no-grid": (DENSE, False),
+    "occupancy": (replace(DENSE, use_occupancy=True), True),
+    "occupancy+termination": (replace(FAST, color_weight_threshold=0.0), True),
+    "fast": (FAST, True),
+    "fast-64": (replace(FAST, samples_per_ray=64), True),
+    "fast-256": (replace(FAST, samples_per_ray=256), True),
+    "fast-term1e-2": (replace(FAST, termination_threshold=1e-2, color_weight_threshold=1e-3), True),
 }
 
 
@@ -39,24 +47,25 @@ def run_render_bench(run_dir: Path, *, repeats: int = 3, views: int = 4) -> dict
     test = replace(test, images=test.images[:views], c2w=test.c2w[:views], files=test.files[:views])
     target = composite_over(test.images)
     runs = []
-    for mode, render_cfg in MODES.items():
+    for mode, (render_cfg, with_grid) in MODES.items():
         times = []
         for _ in range(repeats):
-            images, ms = render_views(params, cfg.field, test, render_cfg, grid)
+            images, ms, samples_per_ray = render_views(params, cfg.field, test, render_cfg, grid if with_grid else None)
             times.append(ms)
-        samples = _samples_per_ray(params, cfg.field, test, render_cfg, grid)
         runs.append(
             {
                 "mode": mode,
                 "ms": float(torch.tensor(times).median()),
                 "psnr": sum(psnr(a, b) for a, b in zip(images, target)) / len(images),
-                "samples_per_ray": samples,
+                "samples_per_ray": samples_per_ray,
+                "occupancy_grid": with_grid,
                 "config": render_cfg.to_dict(),
             }
         )
-    dense_ms = runs[0]["ms"]
+    dense = runs[0]
     for run in runs:
-        run["speedup_vs_dense"] = dense_ms / run["ms"]
+        run["speedup_vs_dense"] = dense["ms"] / run["ms"]
+        run["psnr_vs_dense"] = run["psnr"] - dense["psnr"]
     return {
         "fit": str(run_dir),
         "object": meta.get("object"),
@@ -65,10 +74,3 @@ def run_render_bench(run_dir: Path, *, repeats: int = 3, views: int = 4) -> dict
         "threads": torch.get_num_threads(),
         "runs": runs,
     }
-
-
-def _samples_per_ray(params, field_cfg, views, render_cfg, grid) -> float:
-    from model.renderer import render_image
-
-    out = render_image(params, field_cfg, views.c2w[0], views.width, views.height, views.focal, render_cfg, grid=grid)
-    return float(out["samples"]) / (views.width * views.height)

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from model.field import FieldConfig, FieldParams, color_from_view_term, density, view_term
+from model.field import FieldConfig, FieldParams
 from model.occupancy import OccupancyGrid
 from model.rays import pixel_rays, ray_box_intersection
 from model.sampler import stratified_distances
@@ -112,45 +112,50 @@ def render_rays(
 
     near, far, hit = ray_box_intersection(origins, directions, box[0], box[1])
     far = torch.where(hit, far, near)
-    t, delta = stratified_distances(near, far, cfg.samples_per_ray, jitter=jitter, generator=generator)
-    candidate = hit[:, None].expand_as(t)
-    if cfg.use_occupancy and grid is not None:
-        points = origins[:, None] + directions[:, None] * t[..., None]
-        candidate = candidate & grid.lookup(points)
+    delta = (far - near).clamp_min(0.0) / cfg.samples_per_ray
+    skip_empty = cfg.use_occupancy and grid is not None
 
-    view = view_term(params, directions, field_cfg)[0]
+    view = field_cfg.view_term(params, directions)[0]
     segment = cfg.march_segment if cfg.termination_threshold > 0 else cfg.samples_per_ray
     tau = torch.zeros(rays, device=device)  # optical depth accumulated so far
-    alive = hit
+    live = hit.nonzero().squeeze(1)  # rays still marching
     for start in range(0, cfg.samples_per_ray, segment):
+        if live.numel() == 0:
+            break
         stop = min(start + segment, cfg.samples_per_ray)
-        mask = candidate[:, start:stop] & alive[:, None]
-        ray_idx, col_idx = mask.nonzero(as_tuple=True)
-        if ray_idx.numel() == 0:
+        t_seg, _ = stratified_distances(
+            near[live], far[live], cfg.samples_per_ray, start=start, stop=stop, jitter=jitter, generator=generator
+        )
+        points = origins[live, None] + directions[live, None] * t_seg[..., None]  # [A, s, 3]
+        occupied = grid.lookup(points) if grid is not None else None
+        if skip_empty:
+            live_idx, col_idx = occupied.nonzero(as_tuple=True)
+        else:
+            live_idx, col_idx = torch.ones_like(t_seg, dtype=torch.bool).nonzero(as_tuple=True)
+        if live_idx.numel() == 0:
             continue
-        t_seg = t[:, start:stop]
-        ts = t_seg[ray_idx, col_idx]
-        pts = origins[ray_idx] + directions[ray_idx] * ts[:, None]
-        sigma, geo = density(params, _to_unit(pts, scene_min, scene_max)[None], field_cfg)
+        ts = t_seg[live_idx, col_idx]
+        sigma, geo = field_cfg.density(params, _to_unit(points[live_idx, col_idx], scene_min, scene_max)[None])
         sigma, geo = sigma[0].float(), geo[0]
-        evaluated = evaluated + ray_idx.numel()
+        if occupied is not None and not skip_empty:
+            # the grid is part of the model: empty cells hold no density even when evaluated
+            sigma = sigma * occupied[live_idx, col_idx]
+        evaluated = evaluated + live_idx.numel()
 
-        sd = torch.zeros(rays, stop - start, device=device).index_put((ray_idx, col_idx), sigma * delta[ray_idx])
-        weights = composite_weights(sd, tau)
-        w = weights[ray_idx, col_idx]
+        sd = torch.zeros_like(t_seg).index_put((live_idx, col_idx), sigma * delta[live][live_idx])
+        weights = composite_weights(sd, tau[live])
+        w = weights[live_idx, col_idx]
         keep = w > cfg.color_weight_threshold if cfg.color_weight_threshold > 0 else torch.ones_like(w, dtype=torch.bool)
         if bool(keep.any()):
-            rows = ray_idx[keep]
-            col = color_from_view_term(params, geo[keep][None], view[rows][None], field_cfg)[0].float()
+            rows = live[live_idx[keep]]
+            col = field_cfg.color_from_view_term(params, geo[keep][None], view[rows][None])[0].float()
             wk = w[keep]
             rgb = rgb.index_add(0, rows, wk[:, None] * col)
             depth = depth.index_add(0, rows, wk * ts[keep])
-        opacity = opacity + weights.sum(dim=-1)
-        tau = tau + sd.sum(dim=-1)
+        opacity = opacity.index_add(0, live, weights.sum(dim=-1))
+        tau = tau.index_add(0, live, sd.sum(dim=-1))
         if cfg.termination_threshold > 0:
-            alive = alive & (torch.exp(-tau) > cfg.termination_threshold)
-            if not bool(alive.any()):
-                break
+            live = live[torch.exp(-tau[live]) > cfg.termination_threshold]
 
     rgb = rgb + (1.0 - opacity)[:, None] * background
     return {"rgb": rgb, "opacity": opacity, "depth": depth, "samples": evaluated}
