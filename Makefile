@@ -10,7 +10,7 @@ export MALLOC_MMAP_THRESHOLD_ := 34359738368
 export MALLOC_TRIM_THRESHOLD_ := 34359738368
 export THP_MEM_ALLOC_ENABLE := 1
 
-.PHONY: install run demo test bench data clean
+.PHONY: install run demo test bench bench-prior data clean
 
 install: $(STAMP)
 
@@ -35,7 +35,15 @@ test: install
 
 bench: install
 	$(BIN)/pip install --quiet --no-deps nerfstudio==1.1.5 jaxtyping wadler_lindig rich viser msgspec websockets zstandard
+	$(BIN)/pip install --quiet 'matplotlib>=3.8'
 	$(BIN)/python -m benchmarks.run_all
+
+# The category prior (hours on 2 cores): dataset with colour variants, training, compression,
+# ablation, disentanglement. Stages already done are skipped; training resumes where it stopped.
+bench-prior: install
+	$(BIN)/pip install --quiet 'matplotlib>=3.8'
+	$(BIN)/python -m benchmarks.bench_prior
+	$(BIN)/python -m benchmarks.report
 
 data: install
 	$(BIN)/hypnerf data synth --out data/synth --objects 16 --views 91 --res 128 --seed 0

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import os
 import sys
 from pathlib import Path
@@ -40,44 +39,52 @@ def _fit_config(args):
 
 def cmd_fit(args) -> int:
     """Fit one object, evaluate it on its held-out views, write checkpoint, renders, mesh, metrics."""
-    from model.data.dataset import load_views
     from model.device import default_device
-    from model.evaluate import evaluate_field
-    from model.fit import fit_object, save_fit
-    from model.images import save_png
-    from model.mesh import export_mesh
-    from model.renderer import RenderConfig
+    from model.evaluate import fit_and_evaluate
 
-    device = default_device()
-    root, out = Path(args.data), Path(args.out)
-    train = load_views(root / args.object, split="train")
-    test = load_views(root / args.object, split="test")
-    cfg = _fit_config(args)
-    log.info("fitting %s (%d training views, %dx%d) on %s", args.object, len(train.c2w), train.width, train.height, device)
-    result = fit_object(train, cfg, device=device)
-    save_fit(out, result, cfg, {"data": str(root.resolve()), "object": args.object})
-    log.info("evaluating on %d held-out views", len(test.c2w))
-    metrics, renders, mesh = evaluate_field(result.params, cfg.field, result.grid, test, RenderConfig(), mesh_resolution=args.mesh_resolution)
-    if not math.isfinite(metrics.get("chamfer", 0.0)):
-        log.warning("the fitted field has no surface above the mesh threshold; chamfer is reported as null")
-        metrics["chamfer"] = None
-    metrics.update({"wall_s": result.wall_s, "object": args.object, "steps": cfg.steps, "occupied_fraction": result.grid.fraction})
-    (out / "renders").mkdir(exist_ok=True)
-    for i, image in enumerate(renders):
-        save_png(out / "renders" / f"test_{i:03d}.png", image)
-    export_mesh(mesh, out / "mesh.glb")
-    (out / "history.json").write_text(json.dumps(result.history, indent=2))
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    log.info(
-        "%s: PSNR %.2f dB, SSIM %.4f, Chamfer %s, fit %.1f s -> %s",
-        args.object,
-        metrics["psnr"],
-        metrics["ssim"],
-        f"{metrics['chamfer']:.4f}" if metrics.get("chamfer") is not None else "n/a",
-        result.wall_s,
-        out,
-    )
+    fit_and_evaluate(Path(args.data), args.object, Path(args.out), _fit_config(args), default_device(), args.mesh_resolution)
     return 0
+
+
+def cmd_eval_compression(args) -> int:
+    from model.device import default_device
+    from model.prior_eval import compression
+
+    report = compression(
+        Path(args.run), Path(args.data), objects=args.objects, fits=args.fits, fit_steps=args.fit_steps,
+        mesh_resolution=args.mesh_resolution, ablation=args.ablation, device=default_device(),
+    )
+    report["command"] = "hypnerf " + " ".join(sys.argv[1:])
+    _write_json(args.json, report)
+    h, p = report["hypernet"], report["per_object"]
+    print(f"{report['objects']} objects: hypernet {h['psnr']:.2f} dB / SSIM {h['ssim']:.4f} / Chamfer {h['chamfer']:.4f}; "
+          f"per-object {p['psnr']:.2f} dB / SSIM {p['ssim']:.4f} / Chamfer {p['chamfer']:.4f}; gap {report['psnr_gap_db']:.2f} dB")
+    return 0
+
+
+def cmd_eval_disentanglement(args) -> int:
+    from model.prior_eval import disentanglement
+
+    report = disentanglement(Path(args.run), Path(args.data), pairs=args.pairs, mesh_resolution=args.mesh_resolution, seed=args.seed)
+    report["command"] = "hypnerf " + " ".join(sys.argv[1:])
+    _write_json(args.json, report)
+    print(f"{report['pairs']} pairs: Chamfer ratio mean {report['chamfer_ratio_mean']:.2f} (max {report['chamfer_ratio_max']:.2f}); "
+          f"colour distance to colour source {report['colour_distance_to_color_source_mean']:.1f}, "
+          f"to shape source {report['colour_distance_to_shape_source_mean']:.1f} (Delta E)")
+    return 0
+
+
+def cmd_swap(args) -> int:
+    from model.prior_eval import swap
+
+    result = swap(Path(args.run), Path(args.data), args.shape, args.color, Path(args.out), args.mesh_resolution)
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+def _write_json(path: str, data: dict) -> None:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(data, indent=2))
 
 
 def cmd_bench_render(args) -> int:
@@ -127,6 +134,49 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--mesh-resolution", type=int, default=128)
     fit.add_argument("--seed", type=int, default=0)
     fit.set_defaults(func=cmd_fit)
+
+    from model.train import add_arguments as add_train_arguments
+    from model.train import run_from_args as run_train
+
+    train = sub.add_parser(
+        "train", help="train the hypernetwork prior on a category",
+        description="Train the hypernetwork prior on the train split of a dataset. For data-parallel "
+        "training run `torchrun --nproc_per_node=N -m model.train` with the same options.",
+    )
+    add_train_arguments(train)
+    train.set_defaults(func=run_train)
+
+    evaluate = sub.add_parser("eval", help="evaluate a trained prior")
+    eval_sub = evaluate.add_subparsers(dest="eval", required=True)
+    comp = eval_sub.add_parser(
+        "compression", help="generated NeRFs vs per-object fits (paper Table 2; Table 4 with --ablation no-mrhe)",
+    )
+    comp.add_argument("--run", required=True, help="run folder written by `hypnerf train`")
+    comp.add_argument("--data", required=True, help="the dataset the prior was trained on")
+    comp.add_argument("--json", required=True, help="where to write the report")
+    comp.add_argument("--objects", type=int, default=10, help="training instances compared (default 10)")
+    comp.add_argument("--fits", help="folder of per-object fits to reuse or fill (default RUN/per-object-fits)")
+    comp.add_argument("--fit-steps", type=int, help="steps of each per-object fit (default: the fit default)")
+    comp.add_argument("--mesh-resolution", type=int, default=128)
+    comp.add_argument("--ablation", choices=["no-mrhe"], help="the prior emits a positional-encoding NeRF")
+    comp.set_defaults(func=cmd_eval_compression)
+    dis = eval_sub.add_parser("disentanglement", help="swap shape and colour codes of instance pairs (paper section 4.5)")
+    dis.add_argument("--run", required=True)
+    dis.add_argument("--data", required=True)
+    dis.add_argument("--json", required=True)
+    dis.add_argument("--pairs", type=int, default=10)
+    dis.add_argument("--mesh-resolution", type=int, default=128)
+    dis.add_argument("--seed", type=int, default=0)
+    dis.set_defaults(func=cmd_eval_disentanglement)
+
+    swap = sub.add_parser("swap", help="a NeRF with one instance's shape and another's colour: renders and mesh")
+    swap.add_argument("--run", required=True, help="run folder written by `hypnerf train`")
+    swap.add_argument("--data", required=True, help="the dataset the prior was trained on (for poses and ground truth)")
+    swap.add_argument("--shape", required=True, help="instance id giving the shape code")
+    swap.add_argument("--color", required=True, help="instance id giving the colour code")
+    swap.add_argument("--out", required=True, help="folder for the renders, mesh.glb and swap.json")
+    swap.add_argument("--mesh-resolution", type=int, default=128)
+    swap.set_defaults(func=cmd_swap)
 
     bench = sub.add_parser("bench", help="benchmarks")
     bench_sub = bench.add_subparsers(dest="bench", required=True)

@@ -22,7 +22,8 @@ from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from model.data.dataset import validate_views
-from model.field import FieldConfig, FieldParams, density, init_params
+from model.field import FieldConfig, FieldParams
+from model.fields import field_config_from_dict
 from model.occupancy import OccupancyGrid, carve_from_masks, density_threshold, dilate, max_cell_density
 from model.rays import pixel_rays
 from model.renderer import SCENE_BOX, RenderConfig, render_rays
@@ -56,7 +57,7 @@ class FitConfig:
     @classmethod
     def from_dict(cls, data: dict) -> "FitConfig":
         data = dict(data)
-        data["field"] = FieldConfig.from_dict(data.get("field", {}))
+        data["field"] = field_config_from_dict(data.get("field", {}))
         data["render"] = RenderConfig.from_dict(data.get("render", {}))
         if "betas" in data:
             data["betas"] = tuple(data["betas"])
@@ -81,7 +82,7 @@ def unit_density_fn(params: FieldParams, field_cfg: FieldConfig, device):
 
     def fn(points: torch.Tensor) -> torch.Tensor:
         unit = ((points - lo) / (hi - lo)).clamp(0, 1)
-        return density(params, unit[None], field_cfg)[0][0]
+        return field_cfg.density(params, unit[None])[0][0]
 
     return fn
 
@@ -132,7 +133,7 @@ def fit_object(views, cfg: FitConfig, *, device=None, progress: bool = True) -> 
     log.info("visual hull keeps %.1f%% of the scene box", 100 * hull.fraction)
     grid = _MaintainedGrid(hull, cfg)
 
-    params = {k: v.requires_grad_() for k, v in init_params(cfg.field, 1, generator=generator, device=device).items()}
+    params = {k: v.requires_grad_() for k, v in cfg.field.init_params(1, generator=generator, device=device).items()}
     mlp = [v for k, v in params.items() if k != "tables"]
     optimizer = torch.optim.Adam(
         [{"params": [params["tables"]], "weight_decay": 0.0}, {"params": mlp, "weight_decay": cfg.weight_decay}],

@@ -1,0 +1,124 @@
+"""The category prior on Sweet Home 3D chairs: training, compression, the ablation without MRHE,
+disentanglement, training throughput and its PSNR-against-time curve.
+
+Each stage runs the same ``hypnerf`` command a user would and skips itself when its output is
+already there (delete a file under ``benchmarks/results/`` or a run folder to redo a stage).
+Training resumes from its checkpoint, so the long stages can be done in parts. The training
+curve is drawn with **matplotlib** (Agg backend: no display needed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from benchmarks.common import RESULTS, ROOT, hypnerf, write_result
+
+DATA = ROOT / "data" / "sh3d-chair-variants"
+RUNS = ROOT / "runs"
+
+
+def ensure_dataset(variants: int) -> Path:
+    if not (DATA / "index.json").is_file():
+        hypnerf("data", "import-sh3d", "--out", str(DATA), "--category", "chair", "--variants", str(variants), "--views", "91", "--res", "128")
+    return DATA
+
+
+def ensure_trained(run: Path, preset: str, steps: int, until: int | None) -> bool:
+    """Train (or continue) a prior; returns whether it is finished."""
+    if (run / "hypernet.safetensors").is_file():
+        return True
+    args = ["train", "--data", str(DATA), "--out", str(run), "--preset", preset, "--steps", str(steps)]
+    if (run / "checkpoint.pt").is_file():
+        args.append("--resume")
+    if until:
+        args += ["--until", str(until)]
+    hypnerf(*args)
+    return (run / "hypernet.safetensors").is_file()
+
+
+def training_report(run: Path, name: str) -> dict:
+    history = json.loads((run / "history.json").read_text())
+    meta = json.loads((run / "prior.json").read_text())
+    summary = meta["summary"]
+    window = history[-10:]
+    report = {
+        "command": f"hypnerf train --data {DATA.relative_to(ROOT)} --out {run.relative_to(ROOT)} --preset {name} --steps {summary['steps']}",
+        "preset": name,
+        "instances": summary["instances"],
+        "shapes": summary["shapes"],
+        "steps": summary["steps"],
+        "wall_s": summary["wall_s"],
+        "workers": summary["workers"],
+        "threads_per_worker": summary["threads_per_worker"],
+        "rays_per_s": sum(h["rays_per_s"] for h in window) / len(window),
+        "samples_per_s": sum(h["samples_per_s"] for h in window) / len(window),
+        "samples_per_ray": sum(h["samples_per_ray"] for h in window) / len(window),
+        "parameters": summary["parameters"],
+        "weights_bytes": (run / "hypernet.safetensors").stat().st_size,
+        "curve": [{k: h[k] for k in ("step", "elapsed_s", "train_psnr", "val_psnr") if k in h} for h in history if "val_psnr" in h],
+    }
+    return report
+
+
+def plot_curves(reports: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+    for report in reports:
+        curve = report["curve"]
+        ax.plot([c["elapsed_s"] / 60 for c in curve], [c["val_psnr"] for c in curve], marker="o", markersize=3, label=f"{report['preset']} (validation)")
+    ax.set_xlabel("training time on 2 CPU cores (min)")
+    ax.set_ylabel("held-out-view PSNR of training instances (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--variants", type=int, default=4, help="colour variants per mesh")
+    parser.add_argument("--steps", type=int, default=24000, help="training steps of the cpu prior")
+    parser.add_argument("--ablation-steps", type=int, default=6000, help="training steps of the no-MRHE prior")
+    parser.add_argument("--until", type=int, help="stop training at this step (resume by running again)")
+    parser.add_argument("--objects", type=int, default=10)
+    parser.add_argument("--pairs", type=int, default=10)
+    parser.add_argument("--skip-ablation", action="store_true")
+    args = parser.parse_args(argv)
+    ensure_dataset(args.variants)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+
+    run = RUNS / "prior-cpu"
+    if not ensure_trained(run, "cpu", args.steps, args.until):
+        print(f"training stopped early at --until {args.until}; run again to continue", file=sys.stderr)
+        return 0
+    reports = [training_report(run, "cpu")]
+    fits = RUNS / "prior-fits"
+    if not (RESULTS / "compression.json").is_file():
+        hypnerf("eval", "compression", "--run", str(run), "--data", str(DATA), "--json", str(RESULTS / "compression.json"),
+                "--objects", str(args.objects), "--fits", str(fits))
+    if not (RESULTS / "disentanglement.json").is_file():
+        hypnerf("eval", "disentanglement", "--run", str(run), "--data", str(DATA), "--json", str(RESULTS / "disentanglement.json"),
+                "--pairs", str(args.pairs))
+
+    if not args.skip_ablation:
+        ablation = RUNS / "prior-no-mrhe"
+        if ensure_trained(ablation, "cpu-no-mrhe", args.ablation_steps, args.until):
+            reports.append(training_report(ablation, "cpu-no-mrhe"))
+            if not (RESULTS / "compression_no_mrhe.json").is_file():
+                hypnerf("eval", "compression", "--run", str(ablation), "--data", str(DATA), "--json", str(RESULTS / "compression_no_mrhe.json"),
+                        "--objects", str(args.objects), "--fits", str(fits), "--ablation", "no-mrhe")
+    plot_curves(reports, RESULTS / "training_curve.png")
+    write_result("training", {"runs": reports, "curve_png": "benchmarks/results/training_curve.png"})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,177 @@
+"""Training the prior end to end on tiny procedural chairs: learning, export, resume, torchrun,
+evaluation commands."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from model.category import free_space_points, load_category, shape_grids
+from model.cli import main
+from model.hypernet import preset
+from model.prior_eval import compression, disentanglement, spread_instances
+from model.train import CHECKPOINT, PRIOR_META, PRIOR_WEIGHTS, TrainConfig, load_prior, step_instances, train, Workers
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def chairs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("category")
+    assert main(["data", "synth", "--out", str(root), "--objects", "6", "--views", "24", "--res", "32", "--seed", "5"]) == 0
+    return root
+
+
+def tiny_train(steps: int, **kw) -> TrainConfig:
+    return TrainConfig(
+        steps=steps, objects_per_step=2, rays_per_step=512, lr=3e-3, grid_resolution=24, validate_every=20,
+        validation_instances=2, checkpoint_every=kw.pop("checkpoint_every", 1000), log_every=10, **kw,
+    )
+
+
+@pytest.fixture(scope="module")
+def trained(chairs, tmp_path_factory):
+    run = tmp_path_factory.mktemp("prior")
+    summary = train(chairs, run, preset("tiny"), tiny_train(60), progress=False)
+    return run, summary
+
+
+def test_category_loads_the_train_split_as_uint8(chairs):
+    data = load_category(chairs, progress=False)
+    assert data.images.dtype == torch.uint8 and data.images.shape[1:] == (24, 32, 32, 4)
+    assert data.shapes == len(data.instances) >= 1
+    grids = shape_grids(data, 24, progress=False)
+    # procedural chairs fill about half the box, and the hull grows by one cell: it still carves a quarter away
+    assert grids.shape == (data.shapes, 24, 24, 24) and 0.2 < grids.float().mean() < 0.75
+
+
+def test_free_space_points_avoid_the_grown_object():
+    occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
+    occupied[3:5, 3:5, 3:5] = True
+    points = free_space_points(occupied, 4096, torch.Generator().manual_seed(0))
+    assert 0 < points.shape[0] < 4096
+    cells = ((points + 0.5) * 8).floor().long()
+    assert not ((cells >= 2) & (cells <= 5)).all(dim=1).any()  # the cube plus a one-cell margin
+
+
+def test_workers_draw_distinct_instances():
+    first = step_instances(10, 2, seed=0, step=3, workers=Workers(0, 2))
+    second = step_instances(10, 2, seed=0, step=3, workers=Workers(1, 2))
+    assert len(first) == len(second) == 2 and not set(first) & set(second)
+    assert step_instances(10, 2, 0, 3, Workers(0, 2)) == first
+    assert step_instances(10, 2, 0, 4, Workers(0, 2)) != first or step_instances(10, 2, 0, 5, Workers(0, 2)) != first
+
+
+def test_training_learns_and_exports_the_prior(trained):
+    run, summary = trained
+    history = json.loads((run / "history.json").read_text())
+    assert history[-1]["train_psnr"] > history[0]["train_psnr"] + 3
+    assert "val_psnr" in history[-1] and history[-1]["val_psnr"] > 12
+    assert history[-1]["rays_per_s"] > 0 and history[-1]["samples_per_ray"] > 0
+    assert (run / PRIOR_WEIGHTS).is_file() and (run / CHECKPOINT).is_file()
+    meta = json.loads((run / PRIOR_META).read_text())
+    assert len(meta["instances"]) == summary["instances"] and meta["weights_dtype"] == "float16"
+    assert summary["parameters"]["tables"] > 0
+
+
+def test_exported_prior_reproduces_the_trained_nerfs(trained):
+    run, _ = trained
+    net, meta = load_prior(run)
+    state = torch.load(run / CHECKPOINT, weights_only=False)["model"]
+    index = torch.tensor([0])
+    from model.hypernet import HyperNetConfig, HyperNetwork
+
+    full = HyperNetwork(HyperNetConfig.from_dict(meta["hypernet"]), len(meta["instances"]), [i["shape_index"] for i in meta["instances"]])
+    full.load_state_dict(state)
+    with torch.no_grad():
+        a, b = net(index), full(index)
+    for name in a:
+        assert torch.allclose(a[name], b[name], rtol=2e-2, atol=2e-3), name
+
+
+def test_resume_continues_exactly(chairs, tmp_path):
+    straight = tmp_path / "straight"
+    train(chairs, straight, preset("tiny"), tiny_train(12), progress=False)
+    split = tmp_path / "split"
+    train(chairs, split, preset("tiny"), tiny_train(12), until=5, progress=False)
+    assert not (split / PRIOR_WEIGHTS).exists() and torch.load(split / CHECKPOINT, weights_only=False)["step"] == 5
+    train(chairs, split, preset("tiny"), tiny_train(1), resume=True, progress=False)  # the checkpoint's settings win
+    a = torch.load(straight / CHECKPOINT, weights_only=False)["model"]
+    b = torch.load(split / CHECKPOINT, weights_only=False)["model"]
+    for name in a:
+        assert torch.allclose(a[name], b[name], atol=1e-6), name
+
+
+def test_resume_without_checkpoint_says_what_to_do(chairs, tmp_path):
+    with pytest.raises(FileNotFoundError, match="without --resume"):
+        train(chairs, tmp_path, preset("tiny"), tiny_train(2), resume=True, progress=False)
+
+
+def test_torchrun_trains_data_parallel_with_gloo(chairs, tmp_path):
+    run = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    command = [
+        sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "model.train",
+        "--data", str(chairs), "--out", str(run), "--preset", "tiny", "--steps", "4", "--objects-per-step", "2",
+        "--rays", "256", "--validate-every", "0",
+    ]
+    done = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    meta = json.loads((run / PRIOR_META).read_text())
+    assert meta["summary"]["workers"] == 2 and meta["summary"]["steps"] == 4
+
+
+def test_cli_train_rejects_bad_settings(chairs, tmp_path):
+    assert main(["train", "--data", str(chairs), "--out", str(tmp_path / "r"), "--preset", "huge", "--steps", "2"]) == 2
+    assert main(["train", "--data", str(chairs), "--out", str(tmp_path / "r"), "--preset", "tiny", "--steps", "0"]) == 2
+
+
+def test_compression_report_compares_with_per_object_fits(trained, chairs, tmp_path):
+    run, _ = trained
+    report = compression(run, chairs, objects=2, fits=tmp_path / "fits", fit_steps=40, mesh_resolution=24)
+    assert report["objects"] == 2
+    for side in ("hypernet", "per_object"):
+        assert report[side]["psnr"] > 10 and 0 < report[side]["ssim"] <= 1
+    assert report["psnr_gap_db"] == pytest.approx(report["per_object"]["psnr"] - report["hypernet"]["psnr"])
+    assert report["storage"]["prior_bytes"] == (run / PRIOR_WEIGHTS).stat().st_size
+    # the fits are cached: a second evaluation reuses them
+    written = {p: p.stat().st_mtime_ns for p in (tmp_path / "fits").glob("*/field.safetensors")}
+    again = compression(run, chairs, objects=2, fits=tmp_path / "fits", fit_steps=40, mesh_resolution=24)
+    assert again["per_object"] == report["per_object"]
+    assert {p: p.stat().st_mtime_ns for p in written} == written and len(written) == 2
+    with pytest.raises(ValueError, match="no-mrhe"):
+        compression(run, chairs, objects=1, ablation="no-mrhe")
+
+
+def test_spread_instances_prefers_distinct_shapes():
+    meta = {"instances": [{"id": str(i), "shape_index": i // 3} for i in range(12)]}
+    picks = spread_instances(meta, 4)
+    assert len({meta["instances"][p]["shape_index"] for p in picks}) == 4
+    assert len(spread_instances(meta, 20)) == 12
+
+
+def test_swap_command_writes_renders_mesh_and_figures(trained, chairs, tmp_path):
+    run, _ = trained
+    meta = json.loads((run / PRIOR_META).read_text())
+    a, b = meta["instances"][0]["id"], meta["instances"][-1]["id"]
+    out = tmp_path / "swap"
+    code = main(["swap", "--run", str(run), "--data", str(chairs), "--shape", a, "--color", b, "--out", str(out), "--mesh-resolution", "24"])
+    assert code == 0
+    figures = json.loads((out / "swap.json").read_text())
+    assert figures["shape"] == a and figures["color"] == b
+    assert len(list(out.glob("view_*.png"))) == 12 and (out / "mesh.glb").is_file()
+    assert main(["swap", "--run", str(run), "--data", str(chairs), "--shape", "nope", "--color", b, "--out", str(out)]) == 2
+
+
+def test_disentanglement_report(trained, chairs):
+    run, _ = trained
+    report = disentanglement(run, chairs, pairs=2, min_colour_distance=0.0, mesh_resolution=24)
+    assert report["pairs"] >= 1
+    row = report["rows"][0]
+    assert row["shape"] != row["color"] and row["colour_distance_to_color_source"] >= 0
