@@ -397,3 +397,93 @@ def test_caption_files(tmp_path):
     (tmp_path / "c.tsv").write_text("a an apple chair\n")
     with pytest.raises(ValueError, match="stem<TAB>caption"):
         read_captions(tmp_path / "c.tsv")
+
+
+# ---------------------------------------------------------------------------------------------
+# Colour/material variants
+
+
+def _textured_chair():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        spec = sample_spec(rng)
+        mesh = chair_mesh(spec)
+        if any(m.texture is not None for m in mesh.materials):
+            return mesh
+    raise AssertionError("the procedural generator made no textured chair in 50 tries")
+
+
+def _mean_albedo_lab(mesh) -> np.ndarray:
+    from skimage.color import rgb2lab
+
+    return rgb2lab(mesh.mean_face_colours()[None, :, :3] / 255.0)[0].mean(axis=0)
+
+
+def test_variants_are_deterministic_recolourings_of_the_same_geometry():
+    from model.data.variants import material_variants
+
+    mesh = _textured_chair()
+    variants = material_variants(mesh, 4, "chair-a")
+    again = material_variants(mesh, 4, "chair-a")
+    assert len(variants) == 4 and variants[0] is mesh
+    for a, b in zip(variants, again):
+        assert all(np.array_equal(x.colour, y.colour) for x, y in zip(a.materials, b.materials))
+    for variant in variants[1:]:
+        assert np.array_equal(variant.vertices, mesh.vertices) and np.array_equal(variant.faces, mesh.faces)
+    labs = [_mean_albedo_lab(v) for v in variants]
+    for i in range(4):
+        for j in range(i + 1, 4):
+            assert np.linalg.norm(labs[i] - labs[j]) > 5.0, (i, j)
+    other = material_variants(mesh, 4, "chair-b")
+    assert not all(np.array_equal(x.colour, y.colour) for x, y in zip(other[1].materials, variants[1].materials))
+
+
+def test_variants_keep_texture_patterns():
+    from model.data.variants import material_variants
+
+    mesh = _textured_chair()
+    variant = material_variants(mesh, 2, "pattern")[1]
+    luma = np.array([0.2126, 0.7152, 0.0722])
+    for before, after in zip(mesh.materials, variant.materials):
+        if before.texture is None:
+            assert after.texture is None
+            continue
+        a, b = before.texture[..., :3] @ luma, after.texture[..., :3] @ luma
+        if a.std() > 1e-3:
+            assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.95
+        assert 0.0 <= after.texture.min() and after.texture.max() <= 1.0
+
+
+def test_variants_in_the_index_share_their_mesh_split(tmp_path):
+    build_dataset(tmp_path, synth_objects(4, seed=2), RenderSettings(views=4, resolution=16, variants=3))
+    entries = load_index(tmp_path)
+    assert len(entries) == 12
+    by_shape: dict[str, list] = {}
+    for e in entries:
+        by_shape.setdefault(e.extra["shape_id"], []).append(e)
+        assert e.id == e.extra["shape_id"] or e.id == f"{e.extra['shape_id']}-v{e.extra['variant']}"
+    assert len(by_shape) == 4
+    for members in by_shape.values():
+        assert sorted(m.extra["variant"] for m in members) == [0, 1, 2]
+        assert len({m.split for m in members}) == 1
+        assert len({m.caption for m in members}) >= 2  # captions follow the new colours
+    assert set(e.split for e in entries) == set(OBJECT_SPLITS)
+    mesh = trimesh.load(tmp_path / entries[0].id / "mesh.ply")
+    variant = trimesh.load(tmp_path / by_shape[entries[0].extra["shape_id"]][1].id / "mesh.ply")
+    assert np.allclose(mesh.vertices, variant.vertices)
+
+
+def test_grouped_splits_match_ungrouped_splits_of_the_groups():
+    ids = [f"obj-{i}" for i in range(20)]
+    plain = assign_splits(ids)
+    grouped = assign_splits([f"{i}-v1" for i in ids] + ids, groups={f"{i}-v1": i for i in ids})
+    assert all(grouped[i] == plain[i] == grouped[f"{i}-v1"] for i in ids)
+
+
+def test_variants_must_be_positive(capsys, tmp_path):
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    register(sub)
+    args = parser.parse_args(["data", "synth", "--out", str(tmp_path), "--objects", "1", "--variants", "0"])
+    assert args.func(args) == 1
+    assert "--variants must be at least 1" in capsys.readouterr().err

@@ -17,10 +17,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from model.data.colours import default_caption
 from model.data.cameras import CAMERA_ANGLE_X, DEFAULT_VIEWS, SCENE_AABB, evaluation_poses, training_poses
 from model.data.dataset import INDEX_FILE, ObjectEntry, assign_splits, load_index, write_index, write_object
 from model.data.meshes import RenderMesh, normalise
 from model.data.raycast import DEFAULT_SUPERSAMPLE, render_views
+from model.data.variants import material_variants
 from model.rays import focal_from_fov
 
 log = logging.getLogger(__name__)
@@ -30,11 +32,13 @@ _ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 @dataclass
 class RenderSettings:
-    """How each object is rendered: training view count, square image size, sub-pixel rays per side."""
+    """How each object is rendered: training view count, square image size, sub-pixel rays per
+    side, and how many colour variants of each mesh become objects (1: the mesh as it is)."""
 
     views: int = DEFAULT_VIEWS
     resolution: int = 128
     supersample: int = DEFAULT_SUPERSAMPLE
+    variants: int = 1
 
     def __post_init__(self):
         if self.views < 1:
@@ -43,6 +47,8 @@ class RenderSettings:
             raise ValueError(f"--res must be at least 4 pixels, got {self.resolution}")
         if self.supersample < 1:
             raise ValueError(f"supersample must be at least 1, got {self.supersample}")
+        if self.variants < 1:
+            raise ValueError(f"--variants must be at least 1 (1 renders each mesh as it is), got {self.variants}")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -54,7 +60,8 @@ class SourceObject:
 
     ``load`` returns the mesh in Z-up world axes (any position and scale: it is normalised here)
     and the index fields only known once it is loaded: they update ``extra`` (e.g. ``texture``
-    status), except ``caption``, a default used when ``caption`` is empty. ``extra`` holds
+    status), except ``caption``, a default used when ``caption`` is empty, and ``noun``, what
+    captions of colour variants call the object (default: the category). ``extra`` holds
     provenance and attribution (``source``, ``name``, ``creator``, ``license``, ...).
     """
 
@@ -106,22 +113,27 @@ def build_dataset(out: Path, objects: Iterable[SourceObject], settings: RenderSe
         mesh = normalise(mesh)
         extra = {**item.extra, **learned}
         fallback = extra.pop("caption", "") or f"a {item.category}"
-        caption = item.caption or fallback
-        images, c2w, frame_splits = render_object(mesh, settings, desc=item.id)
-        write_object(
-            out / item.id, images, c2w, frame_splits, CAMERA_ANGLE_X, SCENE_AABB, mesh.to_trimesh(), settings.to_json()
-        )
-        added.add(item.id)
-        entries[item.id] = ObjectEntry(item.id, "train", item.category, caption, extra)
-        _write_with_splits(out, entries)
-        log.info("wrote %s: %d views at %dx%d (%s)", item.id, len(images), settings.resolution, settings.resolution, caption)
+        noun = extra.pop("noun", item.category)
+        for k, variant in enumerate(material_variants(mesh, settings.variants, item.id)):
+            object_id = item.id if k == 0 else f"{item.id}-v{k}"
+            caption = (item.caption or fallback) if k == 0 else default_caption(variant, noun)
+            fields = {**extra, "shape_id": item.id, "variant": k} if settings.variants > 1 else extra
+            images, c2w, frame_splits = render_object(variant, settings, desc=object_id)
+            write_object(
+                out / object_id, images, c2w, frame_splits, CAMERA_ANGLE_X, SCENE_AABB, variant.to_trimesh(), settings.to_json()
+            )
+            added.add(object_id)
+            entries[object_id] = ObjectEntry(object_id, "train", item.category, caption, fields)
+            _write_with_splits(out, entries)
+            log.info("wrote %s: %d views at %dx%d (%s)", object_id, len(images), settings.resolution, settings.resolution, caption)
     if not added:
         raise ValueError("no objects to render")
     return _write_with_splits(out, entries)
 
 
 def _write_with_splits(out: Path, entries: dict[str, ObjectEntry]) -> list[ObjectEntry]:
-    splits = assign_splits(entries)
+    # colour variants of one mesh share a split, so no test shape is seen in training
+    splits = assign_splits(entries, groups={i: str(e.extra.get("shape_id", i)) for i, e in entries.items()})
     for object_id, entry in entries.items():
         entry.split = splits[object_id]
     write_index(out, entries.values())

@@ -47,3 +47,13 @@ def dominant_colour(mesh: RenderMesh) -> str:
     names = np.array(colour_names(unique / 255.0))[inverse.reshape(-1)]
     totals = {name: float(area[names == name].sum()) for name in set(names.tolist())}
     return max(sorted(totals), key=totals.get)
+
+
+def article(word: str) -> str:
+    return "an" if word[:1].lower() in "aeiou" else "a"
+
+
+def default_caption(mesh: RenderMesh, noun: str) -> str:
+    """``a <main colour> <noun>``, e.g. "a brown armchair"."""
+    colour = dominant_colour(mesh)
+    return f"{article(colour)} {colour} {noun.lower()}"

@@ -38,6 +38,10 @@ def register(subparsers) -> argparse.ArgumentParser:
         "--supersample", type=int, default=DEFAULT_SUPERSAMPLE,
         help=f"rays per pixel side for antialiasing (default {DEFAULT_SUPERSAMPLE})",
     )
+    render.add_argument(
+        "--variants", type=int, default=1,
+        help="objects per mesh: the mesh as it is plus N-1 colour/material variants (ids <id>-v1, ...; default 1)",
+    )
 
     synth = commands.add_parser("synth", parents=[render], help="procedural chairs", description="Render procedural chairs.")
     synth.add_argument("--objects", type=int, default=16, help="number of chairs (default 16)")
@@ -71,7 +75,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 def _build(args, source: Callable[[], tuple[Iterable[SourceObject], int]]) -> int:
     """Render what ``source()`` lists into ``args.out``; expected failures become a message and status 1."""
     try:
-        settings = RenderSettings(views=args.views, resolution=args.res, supersample=args.supersample)
+        settings = RenderSettings(views=args.views, resolution=args.res, supersample=args.supersample, variants=args.variants)
         objects, total = source()
         start = time.perf_counter()
         entries = build_dataset(args.out, objects, settings, total=total)

@@ -148,13 +148,22 @@ def _unit_hash(object_id: str) -> float:
     return int.from_bytes(digest[:8], "big") / 2.0**64
 
 
-def assign_splits(ids: Iterable[str]) -> dict[str, str]:
+def assign_splits(ids: Iterable[str], groups: dict[str, str] | None = None) -> dict[str, str]:
     """Deterministic object splits: about 80% train, 10% val, 10% test from a hash of each id.
 
-    With three or more objects every split gets at least one: an empty split takes the object
-    whose hash lies closest to it from the largest split. The result depends only on the set of ids.
+    ``groups`` maps ids to a group (colour variants of one mesh share their ``shape_id``); a group
+    is split as one object, so all its members land in the same split. With three or more groups
+    every split gets at least one: an empty split takes the group whose hash lies closest to it
+    from the largest split. The result depends only on the set of ids and their groups.
     """
-    keys = {object_id: _unit_hash(object_id) for object_id in sorted(set(ids))}
+    ids = sorted(set(ids))
+    group_of = {i: (groups or {}).get(i, i) for i in ids}
+    by_group = _split_groups(group_of.values())
+    return {i: by_group[group_of[i]] for i in ids}
+
+
+def _split_groups(groups: Iterable[str]) -> dict[str, str]:
+    keys = {group: _unit_hash(group) for group in sorted(set(groups))}
     train_end, val_end = _SPLIT_FRACTIONS[0], sum(_SPLIT_FRACTIONS)
     splits = {i: "train" if h < train_end else "val" if h < val_end else "test" for i, h in keys.items()}
     if len(keys) >= 3:

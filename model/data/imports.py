@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from model.data.build import SourceObject, slug
-from model.data.colours import dominant_colour
+from model.data.colours import default_caption
 from model.data.meshes import RenderMesh, load_mesh_file, y_up_to_z_up
 
 log = logging.getLogger(__name__)
@@ -65,16 +65,6 @@ def texture_status(mesh: RenderMesh, missing: list[str]) -> str:
     if missing:
         return "tex_missing"
     return "tex_ok" if any(m.texture is not None for m in mesh.materials) else "color_only"
-
-
-def article(word: str) -> str:
-    return "an" if word[:1].lower() in "aeiou" else "a"
-
-
-def default_caption(mesh: RenderMesh, noun: str) -> str:
-    """``a <main colour> <noun>``, e.g. "a brown armchair"."""
-    colour = dominant_colour(mesh)
-    return f"{article(colour)} {colour} {noun.lower()}"
 
 
 def load_upright(path: Path, up: str = "y", rotation: np.ndarray | None = None) -> tuple[RenderMesh, str]:
@@ -121,4 +111,4 @@ def mesh_file_objects(paths: list[Path], category: str, captions: dict[str, str]
 def _load_file(path: Path, up: str, name: str, category: str) -> tuple[RenderMesh, dict]:
     mesh, texture = load_upright(path, up)
     noun = name if category.lower() in name.lower() else category
-    return mesh, {"texture": texture, "caption": default_caption(mesh, noun)}
+    return mesh, {"texture": texture, "caption": default_caption(mesh, noun), "noun": noun}

@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from model.data.build import SourceObject, slug
-from model.data.imports import default_caption, load_upright
+from model.data.colours import default_caption
+from model.data.imports import load_upright
 from model.data.meshes import RenderMesh
 
 log = logging.getLogger(__name__)
@@ -296,7 +297,8 @@ def _load_model(library: Library, row: CategoryRow, entry: dict[str, str], model
     mesh, texture = load_upright(obj, "y", rotation=model_rotation(entry))
     if texture != row.texture:
         log.warning("%s: texture status %s differs from the category list's %s", row.model, texture, row.texture)
-    return mesh, {"texture": texture, "caption": default_caption(mesh, entry.get("name", row.name))}
+    noun = entry.get("name", row.name)
+    return mesh, {"texture": texture, "caption": default_caption(mesh, noun), "noun": noun}
 
 
 def sh3d_objects(
