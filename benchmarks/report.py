@@ -17,6 +17,11 @@ COMMANDS = {
 }
 
 
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    """A markdown table: a header row, its rule, one line per row."""
+    return [f"| {' | '.join(header)} |", "|" + "---|" * len(header), *(f"| {' | '.join(row)} |" for row in rows)]
+
+
 def _load(name: str) -> dict | None:
     path = RESULTS / f"{name}.json"
     return json.loads(path.read_text()) if path.is_file() else None
@@ -30,11 +35,8 @@ def encoding_section(data: dict) -> list[str]:
         f"L={cfg.get('levels')}, T=2^{cfg.get('log2_table_size')}, F={cfg.get('features')}, "
         f"{data.get('points', 'N')} points, {data['threads']} threads, one process, medians.",
         "",
-        "| implementation | pass | M points/s |",
-        "|---|---|---|",
+        *_table(["implementation", "pass", "M points/s"], [[run["impl"], run["pass"], f"{run['points_per_s'] / 1e6:.2f}"] for run in data["runs"]]),
     ]
-    for run in data["runs"]:
-        lines.append(f"| {run['impl']} | {run['pass']} | {run['points_per_s'] / 1e6:.2f} |")
     speed = data["speedup_vs_nerfstudio"]
     lines += ["", f"Speed-up over nerfstudio: **{speed['forward']:.0f}x forward, {speed['forward+backward']:.0f}x forward+backward**.", ""]
     return lines
@@ -51,32 +53,30 @@ def render_section(data: dict) -> list[str]:
         "(128 samples across the scene box, every one evaluated, colour everywhere, no termination), "
         "`dense-no-grid` drops the grid from the model to show the haze it removes.",
         "",
-        "| mode | ms / image | PSNR (dB) | PSNR vs dense (dB) | samples / ray | speed-up vs dense |",
-        "|---|---|---|---|---|---|",
+        *_table(
+            ["mode", "ms / image", "PSNR (dB)", "PSNR vs dense (dB)", "samples / ray", "speed-up vs dense"],
+            [
+                [run["mode"], f"{run['ms']:.1f}", f"{run['psnr']:.2f}", f"{run['psnr_vs_dense']:+.2f}", f"{run['samples_per_ray']:.1f}", f"{run['speedup_vs_dense']:.1f}x"]
+                for run in data["runs"]
+            ],
+        ),
     ]
-    for run in data["runs"]:
-        lines.append(
-            f"| {run['mode']} | {run['ms']:.1f} | {run['psnr']:.2f} | {run['psnr_vs_dense']:+.2f} | "
-            f"{run['samples_per_ray']:.1f} | {run['speedup_vs_dense']:.1f}x |"
-        )
     return lines + [""]
 
 
 def fit_section(data: dict) -> list[str]:
-    lines = [
+    m = data["mean"]
+    rows = [[row["object"], f"{row['psnr']:.2f}", f"{row['ssim']:.4f}", f"{row['chamfer']:.4f}", f"{row['wall_s']:.0f}"] for row in data["objects"]]
+    rows.append(["**mean**", f"**{m['psnr']:.2f}**", f"**{m['ssim']:.4f}**", f"**{m['chamfer']:.4f}**", f"**{m['wall_s']:.0f}**"])
+    return [
         "## Per-object fits (Sweet Home 3D chairs, 128x128)",
         "",
         f"{data['steps']} steps, {data['threads']} threads; PSNR/SSIM on the fixed held-out views; Chamfer in scene-box units.",
         "",
         *([data["note"], ""] if data.get("note") else []),
-        "| object | PSNR (dB) | SSIM | Chamfer | fit wall (s) |",
-        "|---|---|---|---|---|",
+        *_table(["object", "PSNR (dB)", "SSIM", "Chamfer", "fit wall (s)"], rows),
+        "",
     ]
-    for row in data["objects"]:
-        lines.append(f"| {row['object']} | {row['psnr']:.2f} | {row['ssim']:.4f} | {row['chamfer']:.4f} | {row['wall_s']:.0f} |")
-    m = data["mean"]
-    lines.append(f"| **mean** | **{m['psnr']:.2f}** | **{m['ssim']:.4f}** | **{m['chamfer']:.4f}** | **{m['wall_s']:.0f}** |")
-    return lines + [""]
 
 
 def _metric(value, fmt: str) -> str:
@@ -87,14 +87,17 @@ def training_section(data: dict) -> list[str]:
     lines = [
         "## Category prior: training (Sweet Home 3D chairs with colour variants)",
         "",
-        "| preset | instances (shapes) | steps | wall | rays/s | samples/s | samples/ray | weights |",
-        "|---|---|---|---|---|---|---|---|",
+        *_table(
+            ["preset", "instances (shapes)", "steps", "wall", "rays/s", "samples/s", "samples/ray", "weights"],
+            [
+                [
+                    run["preset"], f"{run['instances']} ({run['shapes']})", str(run["steps"]), f"{run['wall_s'] / 60:.0f} min", f"{run['rays_per_s']:.0f}",
+                    f"{run['samples_per_s'] / 1e6:.2f} M", f"{run['samples_per_ray']:.1f}", f"{run['weights_bytes'] / 1e6:.1f} MB",
+                ]
+                for run in data["runs"]
+            ],
+        ),
     ]
-    for run in data["runs"]:
-        lines.append(
-            f"| {run['preset']} | {run['instances']} ({run['shapes']}) | {run['steps']} | {run['wall_s'] / 60:.0f} min | "
-            f"{run['rays_per_s']:.0f} | {run['samples_per_s'] / 1e6:.2f} M | {run['samples_per_ray']:.1f} | {run['weights_bytes'] / 1e6:.1f} MB |"
-        )
     lines += ["", "Hypernetwork parameters per head:", ""]
     for run in data["runs"]:
         counts = ", ".join(f"{k} {v:,}" for k, v in run["parameters"].items())
@@ -111,10 +114,13 @@ def compression_section(data: dict, title: str) -> list[str]:
         f"{data['objects']} training instances, fixed held-out views at 128x128; per-object fits: {data['per_object_field']} field, "
         f"{data['per_object_steps']} steps. The prior's NeRFs use an occupancy grid from their own density.",
         "",
-        "| | PSNR (dB) | SSIM | Chamfer | render ms |",
-        "|---|---|---|---|---|",
-        f"| prior ({data['field']} field) | {h['psnr']:.2f} | {h['ssim']:.4f} | {_metric(h['chamfer'], '.4f')} | {_metric(h.get('render_ms'), '.1f')} |",
-        f"| per-object fits | {p['psnr']:.2f} | {p['ssim']:.4f} | {_metric(p['chamfer'], '.4f')} | {_metric(p.get('render_ms'), '.1f')} |",
+        *_table(
+            ["", "PSNR (dB)", "SSIM", "Chamfer", "render ms"],
+            [
+                [label, f"{m['psnr']:.2f}", f"{m['ssim']:.4f}", _metric(m["chamfer"], ".4f"), _metric(m.get("render_ms"), ".1f")]
+                for label, m in ((f"prior ({data['field']} field)", h), ("per-object fits", p))
+            ],
+        ),
         "",
         f"PSNR gap **{data['psnr_gap_db']:.2f} dB**. Storage: the prior is {st['prior_bytes'] / 1e6:.1f} MB for {st['prior_instances']} instances; "
         f"per-object fits would take {st['per_object_bytes_for_all_instances'] / 1e6:.1f} MB ({st['compression_ratio']:.1f}x).",
