@@ -18,6 +18,8 @@ from benchmarks.common import RESULTS, ROOT, hypnerf, write_result
 
 DATA = ROOT / "data" / "sh3d-chair-variants"
 RUNS = ROOT / "runs"
+# 8 objects x 512 rays per step; validation and checkpoints every 1000 steps (each costs a few seconds)
+TRAIN_ARGS = ("--objects-per-step", "8", "--rays", "4096", "--validate-every", "1000", "--checkpoint-every", "1000")
 
 
 def ensure_dataset(variants: int) -> Path:
@@ -30,7 +32,7 @@ def ensure_trained(run: Path, preset: str, steps: int, until: int | None) -> boo
     """Train (or continue) a prior; returns whether it is finished."""
     if (run / "hypernet.safetensors").is_file():
         return True
-    args = ["train", "--data", str(DATA), "--out", str(run), "--preset", preset, "--steps", str(steps)]
+    args = ["train", "--data", str(DATA), "--out", str(run), "--preset", preset, "--steps", str(steps), *TRAIN_ARGS]
     if (run / "checkpoint.pt").is_file():
         args.append("--resume")
     if until:
@@ -45,7 +47,7 @@ def training_report(run: Path, name: str) -> dict:
     summary = meta["summary"]
     window = history[-10:]
     report = {
-        "command": f"hypnerf train --data {DATA.relative_to(ROOT)} --out {run.relative_to(ROOT)} --preset {name} --steps {summary['steps']}",
+        "command": f"hypnerf train --data {DATA.relative_to(ROOT)} --out {run.relative_to(ROOT)} --preset {name} --steps {summary['steps']} {' '.join(TRAIN_ARGS)}",
         "preset": name,
         "instances": summary["instances"],
         "shapes": summary["shapes"],
@@ -85,7 +87,7 @@ def plot_curves(reports: list[dict], path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--variants", type=int, default=4, help="colour variants per mesh")
-    parser.add_argument("--steps", type=int, default=24000, help="training steps of the cpu prior")
+    parser.add_argument("--steps", type=int, default=30000, help="training steps of the cpu prior")
     parser.add_argument("--ablation-steps", type=int, default=6000, help="training steps of the no-MRHE prior")
     parser.add_argument("--until", type=int, help="stop training at this step (resume by running again)")
     parser.add_argument("--objects", type=int, default=10)
