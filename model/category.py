@@ -124,10 +124,15 @@ def grid_of(occupied: torch.Tensor, device=None) -> OccupancyGrid:
     return OccupancyGrid(occupied.to(device), lo, hi)
 
 
-def free_space_points(occupied: torch.Tensor, count: int, generator: torch.Generator, margin: int = 1) -> torch.Tensor:
-    """Up to ``count`` uniform points of the scene box lying in cells that are empty even after
-    growing the occupied set by ``margin`` cells; world coordinates ``[M, 3]``."""
-    lo, hi = scene_box(occupied.device)
-    points = lo + torch.rand(count, 3, generator=generator, device=occupied.device) * (hi - lo)
-    grown = OccupancyGrid(dilate(occupied, margin), lo, hi)
-    return points[~grown.lookup(points)]
+def free_space_grids(grids: torch.Tensor, margin: int = 1) -> torch.Tensor:
+    """Each shape's hull grown by ``margin`` cells, ``[shapes, G, G, G]``: what lies outside is
+    surely empty. Computed once per run (a 3D max-pool per shape is too slow to repeat every step)."""
+    return torch.stack([dilate(grid, margin) for grid in grids]) if len(grids) else grids
+
+
+def free_space_points(grown: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
+    """Up to ``count`` uniform points of the scene box in cells empty in ``grown`` (a hull grown by
+    a margin, see ``free_space_grids``); world coordinates ``[M, 3]``."""
+    lo, hi = scene_box(grown.device)
+    points = lo + torch.rand(count, 3, generator=generator, device=grown.device) * (hi - lo)
+    return points[~OccupancyGrid(grown, lo, hi).lookup(points)]

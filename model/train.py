@@ -33,7 +33,7 @@ import torch.distributed as dist
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from model.category import CategoryData, free_space_points, grid_of, load_category, shape_grids
+from model.category import CategoryData, free_space_grids, free_space_points, grid_of, load_category, shape_grids
 from model.data.dataset import load_views
 from model.device import default_device
 from model.evaluate import composite_over
@@ -135,6 +135,7 @@ def instance_loss(
     data: CategoryData,
     instance: int,
     occupied: torch.Tensor,
+    free_grid: torch.Tensor,
     rays: int,
     directions_cam: torch.Tensor,
     cfg: TrainConfig,
@@ -152,7 +153,7 @@ def instance_loss(
     out = render_rays(params, field_cfg, origins, directions, cfg.render, grid=grid, background=background, jitter=True, generator=generator)
     mse = torch.mean((out["rgb"] - target) ** 2)
     loss = mse
-    free = free_space_points(occupied, cfg.free_space_points, generator)
+    free = free_space_points(free_grid, cfg.free_space_points, generator)
     if cfg.free_space_weight > 0 and free.shape[0]:
         lo, hi = scene_box(device)
         sigma = field_cfg.density(params, ((free - lo) / (hi - lo))[None])[0][0]
@@ -276,12 +277,14 @@ def train(
     if tcfg.objects_per_step < 1 or tcfg.rays_per_step < tcfg.objects_per_step:
         raise ValueError("objects_per_step must be >= 1 and rays_per_step at least one ray per object")
     grids = shape_grids(data, tcfg.grid_resolution, progress=progress and workers.main)
+    free_grids = free_space_grids(grids)
     log.info("training grids keep %.1f%% of the scene box on average", 100 * grids.float().mean().item())
     net = HyperNetwork(hcfg, len(data.instances), data.shape_index, seed=tcfg.seed).to(device)
     if workers.main:
         counts = net.head_parameter_counts()
         log.info("hypernetwork parameters: %s (total %d)", ", ".join(f"{k} {v:,}" for k, v in counts.items()), sum(counts.values()))
-    optimizer = torch.optim.Adam(net.parameters(), lr=tcfg.lr, betas=tcfg.betas, eps=1e-15)
+    # fused: one pass over each tensor per step instead of a dozen (the table head alone is 8M values)
+    optimizer = torch.optim.Adam(net.parameters(), lr=tcfg.lr, betas=tcfg.betas, eps=1e-15, fused=True)
     decay = math.log(tcfg.final_lr_factor) / max(tcfg.steps, 1)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: math.exp(decay * step))
     history: list[dict] = []
@@ -320,7 +323,7 @@ def train(
         samples = 0
         for b, n in enumerate(chosen):
             part, info = instance_loss(
-                select(params, b), data, n, grids[data.instances[n].shape_index], rays_per_object,
+                select(params, b), data, n, grids[data.instances[n].shape_index], free_grids[data.instances[n].shape_index], rays_per_object,
                 directions_cam.to(device), tcfg, hcfg.field, generator,
             )
             loss = loss + part / len(chosen)

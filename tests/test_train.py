@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from model.category import free_space_points, load_category, shape_grids
+from model.category import free_space_grids, free_space_points, load_category, shape_grids
 from model.cli import main
 from model.hypernet import preset
 from model.prior_eval import compression, disentanglement, spread_instances
@@ -55,7 +55,7 @@ def test_category_loads_the_train_split_as_uint8(chairs):
 def test_free_space_points_avoid_the_grown_object():
     occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
     occupied[3:5, 3:5, 3:5] = True
-    points = free_space_points(occupied, 4096, torch.Generator().manual_seed(0))
+    points = free_space_points(free_space_grids(occupied[None])[0], 4096, torch.Generator().manual_seed(0))
     assert 0 < points.shape[0] < 4096
     cells = ((points + 0.5) * 8).floor().long()
     assert not ((cells >= 2) & (cells <= 5)).all(dim=1).any()  # the cube plus a one-cell margin

@@ -1,0 +1,110 @@
+"""Why the ``cpu`` preset: size, speed and quality of hypernetwork sizes on the same chairs.
+
+Three hypernetworks emit the same hash-grid NeRF:
+- ``paper``: the official code's sizes (codes 512 + 512, heads of 3 x 512, full-rank table head);
+- ``cpu-full-rank``: the ``cpu`` preset without the low-rank bottleneck in front of the table head;
+- ``cpu``: codes 128 + 128, heads of 2 x 256, rank-128 table head (what ``hypnerf train`` uses).
+
+Quality: each is trained for the same steps on the same instances (the first ``--instances`` of
+the train split: a few meshes with their colour variants) and scored on one held-out view of every
+instance, each NeRF with the occupancy grid of its own density. Speed: a short run on a quiet
+machine, rays/s after warm-up. Size: parameters and bytes of the exported (fp16) prior.
+
+Quality runs are kept under ``runs/presets/`` and skipped when present, so the timing stage can
+be repeated alone (``--timing-only``) when the quality runs shared the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from benchmarks.bench_prior import DATA, RUNS, ensure_dataset
+from benchmarks.common import RESULTS, write_result
+from model.category import load_category
+from model.hypernet import HyperNetConfig, preset
+from model.train import PRIOR_WEIGHTS, TrainConfig, load_prior, train, validate, validation_views
+
+PRESETS: dict[str, HyperNetConfig] = {
+    "paper": preset("paper"),
+    "cpu-full-rank": replace(preset("cpu"), table_rank=None),
+    "cpu": preset("cpu"),
+}
+
+
+def train_config(steps: int, validate_every: int) -> TrainConfig:
+    return TrainConfig(steps=steps, objects_per_step=8, rays_per_step=4096, validate_every=validate_every, checkpoint_every=max(steps, 1), log_every=10)
+
+
+def quality(name: str, cfg: HyperNetConfig, steps: int, instances: int) -> dict:
+    run = RUNS / "presets" / name
+    if not (run / PRIOR_WEIGHTS).is_file():
+        train(DATA, run, cfg, train_config(steps, validate_every=0), limit=instances)
+    net, meta = load_prior(run)
+    data = load_category(DATA, "train", instances, progress=False)
+    views = validation_views(data, instances)
+    return {
+        "steps": meta["summary"]["steps"],
+        "wall_s": meta["summary"]["wall_s"],
+        "held_out_psnr": validate(net, views, torch.device("cpu")),
+        "weights_bytes": (run / PRIOR_WEIGHTS).stat().st_size,
+        "parameters": sum(net.head_parameter_counts().values()),
+        "table_head_parameters": net.head_parameter_counts()["tables"],
+    }
+
+
+def timing(cfg: HyperNetConfig, steps: int, instances: int) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        train(DATA, Path(tmp), cfg, train_config(steps, validate_every=0), limit=instances, progress=False)
+        history = json.loads((Path(tmp) / "history.json").read_text())
+    warm = [h for h in history if h["step"] >= 10] or history
+    rays = statistics.median(h["rays_per_s"] for h in warm)
+    return {"rays_per_s": rays, "steps_per_s": rays / 4096}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=1500, help="training steps of each quality run")
+    parser.add_argument("--instances", type=int, default=16, help="first N instances of the train split")
+    parser.add_argument("--timing-steps", type=int, default=60)
+    parser.add_argument("--timing-only", action="store_true", help="re-measure speed only; keep the quality figures on file")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (timings are comparable only at equal threads on a quiet machine)")
+    args = parser.parse_args(argv)
+    ensure_dataset(4)
+    torch.set_num_threads(args.threads)
+    previous = json.loads((RESULTS / "presets.json").read_text()) if (RESULTS / "presets.json").is_file() else {}
+    rows = []
+    for name, cfg in PRESETS.items():
+        row = {"preset": name, "shape_code_dim": cfg.shape_code_dim, "color_code_dim": cfg.color_code_dim,
+               "head_hidden": cfg.head_hidden, "head_layers": cfg.head_layers, "table_rank": cfg.table_rank}
+        if args.timing_only:
+            row.update({k: v for k, v in next(r for r in previous["runs"] if r["preset"] == name).items() if k not in ("rays_per_s", "steps_per_s")})
+        else:
+            print(f"quality run: {name}", file=sys.stderr)
+            row.update(quality(name, cfg, args.steps, args.instances))
+        print(f"timing run: {name}", file=sys.stderr)
+        row.update(timing(cfg, args.timing_steps, args.instances))
+        rows.append(row)
+        print(json.dumps(row), file=sys.stderr)
+    write_result("presets", {
+        "command": "python -m benchmarks.bench_presets",
+        "dataset": str(DATA.relative_to(DATA.parents[1])),
+        "instances": args.instances,
+        "steps": args.steps,
+        "objects_per_step": 8,
+        "rays_per_step": 4096,
+        "threads": torch.get_num_threads(),
+        "runs": rows,
+    })
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
