@@ -13,6 +13,7 @@ COMMANDS = {
     "disentanglement": "hypnerf eval disentanglement --run runs/prior-cpu --data data/sh3d-chair-variants --json benchmarks/results/disentanglement.json --pairs 10",
     "encoding": "make bench  (or: python -m benchmarks.bench_encoding)",
     "fit": "python -m benchmarks.bench_fit  (runs hypnerf fit per object, 6 objects, 2000 steps)",
+    "presets": "python -m benchmarks.bench_presets",
     "render": "python -m benchmarks.bench_render  (runs: hypnerf bench render --fit runs/bench-fit/<first chair> --json benchmarks/results/render.json)",
 }
 
@@ -106,6 +107,30 @@ def training_section(data: dict) -> list[str]:
     return lines
 
 
+def presets_section(data: dict) -> list[str]:
+    return [
+        "## Hypernetwork presets: size, speed, quality",
+        "",
+        f"Each preset trained {data['steps']} steps on the first {data['instances']} instances of the train split "
+        f"({data['objects_per_step']} objects x {data['rays_per_step'] // data['objects_per_step']} rays per step), scored on one "
+        f"held-out view of every instance; rays/s from a short run after warm-up, {data['threads']} threads. "
+        "Weights are the exported fp16 prior (the demo bundle allows 30 MB).",
+        "",
+        *_table(
+            ["preset", "codes", "heads", "table head", "parameters", "weights", "rays/s", "held-out PSNR (dB)"],
+            [
+                [
+                    run["preset"], f"{run['shape_code_dim']} + {run['color_code_dim']}", f"{run['head_layers']} x {run['head_hidden']}",
+                    "full rank" if run["table_rank"] is None else f"rank {run['table_rank']}", f"{run['parameters'] / 1e6:.1f} M",
+                    f"{run['weights_bytes'] / 1e6:.1f} MB", f"{run['rays_per_s']:.0f}", f"{run['held_out_psnr']:.2f}",
+                ]
+                for run in data["runs"]
+            ],
+        ),
+        "",
+    ]
+
+
 def compression_section(data: dict, title: str) -> list[str]:
     h, p, st = data["hypernet"], data["per_object"], data["storage"]
     lines = [
@@ -154,6 +179,7 @@ def main() -> int:
         ("encoding", encoding_section),
         ("render", render_section),
         ("fit", fit_section),
+        ("presets", presets_section),
         ("training", training_section),
         ("compression", lambda d: compression_section(d, "Compression: prior vs per-object fits (paper Table 2)")),
         ("compression_no_mrhe", lambda d: compression_section(d, "Ablation without MRHE (paper Table 4)")),
