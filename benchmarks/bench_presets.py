@@ -1,4 +1,4 @@
-"""Why the ``cpu`` preset: size, speed and quality of hypernetwork sizes on the same chairs.
+"""Why the ``cpu`` preset and the hull: size, speed and quality of training choices on the same chairs.
 
 Three hypernetworks emit the same hash-grid NeRF:
 - ``paper``: the official code's sizes (codes 512 + 512, heads of 3 x 512, full-rank table head);
@@ -9,6 +9,10 @@ Quality: each is trained for the same steps on the same instances (the first ``-
 the train split: a few meshes with their colour variants) and scored on one held-out view of every
 instance, each NeRF with the occupancy grid of its own density. Speed: a short run on a quiet
 machine, rays/s after warm-up. Size: parameters and bytes of the exported (fp16) prior.
+
+The same measurements compare where training rays take samples (``TrainConfig.occupancy``): the
+visual hull carved from the masks (what ``hypnerf train`` uses), a band around the ground-truth
+mesh surface, and the whole box without empty-space skipping.
 
 Quality runs are kept under ``runs/presets/`` and skipped when present, so the timing stage can
 be repeated alone (``--timing-only``) when the quality runs shared the machine.
@@ -39,14 +43,20 @@ PRESETS: dict[str, HyperNetConfig] = {
 }
 
 
-def train_config(steps: int, validate_every: int) -> TrainConfig:
-    return TrainConfig(steps=steps, objects_per_step=8, rays_per_step=4096, validate_every=validate_every, checkpoint_every=max(steps, 1), log_every=10)
+# the hull is the "cpu" preset's own run
+OCCUPANCY = {"hull": "cpu", "mesh": "occupancy-mesh", "box": "occupancy-box"}
 
 
-def quality(name: str, cfg: HyperNetConfig, steps: int, instances: int) -> dict:
+def train_config(steps: int, validate_every: int, occupancy: str = "hull") -> TrainConfig:
+    return TrainConfig(
+        steps=steps, objects_per_step=8, rays_per_step=4096, validate_every=validate_every, checkpoint_every=max(steps, 1), log_every=10, occupancy=occupancy
+    )
+
+
+def quality(name: str, cfg: HyperNetConfig, steps: int, instances: int, occupancy: str = "hull") -> dict:
     run = RUNS / "presets" / name
     if not (run / PRIOR_WEIGHTS).is_file():
-        train(DATA, run, cfg, train_config(steps, validate_every=0), limit=instances)
+        train(DATA, run, cfg, train_config(steps, validate_every=0, occupancy=occupancy), limit=instances)
     net, meta = load_prior(run)
     data = load_category(DATA, "train", instances, progress=False)
     views = validation_views(data, instances)
@@ -60,13 +70,16 @@ def quality(name: str, cfg: HyperNetConfig, steps: int, instances: int) -> dict:
     }
 
 
-def timing(cfg: HyperNetConfig, steps: int, instances: int) -> dict:
+def timing(cfg: HyperNetConfig, steps: int, instances: int, occupancy: str = "hull") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        train(DATA, Path(tmp), cfg, train_config(steps, validate_every=0), limit=instances, progress=False)
+        train(DATA, Path(tmp), cfg, train_config(steps, validate_every=0, occupancy=occupancy), limit=instances, progress=False)
         history = json.loads((Path(tmp) / "history.json").read_text())
     warm = [h for h in history if h["step"] >= 10] or history
     rays = statistics.median(h["rays_per_s"] for h in warm)
-    return {"rays_per_s": rays, "steps_per_s": rays / 4096}
+    return {"rays_per_s": rays, "steps_per_s": rays / 4096, "samples_per_ray": statistics.median(h["samples_per_ray"] for h in warm)}
+
+
+TIMED = ("rays_per_s", "steps_per_s", "samples_per_ray")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,13 +98,25 @@ def main(argv: list[str] | None = None) -> int:
         row = {"preset": name, "shape_code_dim": cfg.shape_code_dim, "color_code_dim": cfg.color_code_dim,
                "head_hidden": cfg.head_hidden, "head_layers": cfg.head_layers, "table_rank": cfg.table_rank}
         if args.timing_only:
-            row.update({k: v for k, v in next(r for r in previous["runs"] if r["preset"] == name).items() if k not in ("rays_per_s", "steps_per_s")})
+            row.update({k: v for k, v in next(r for r in previous["runs"] if r["preset"] == name).items() if k not in TIMED})
         else:
             print(f"quality run: {name}", file=sys.stderr)
             row.update(quality(name, cfg, args.steps, args.instances))
         print(f"timing run: {name}", file=sys.stderr)
         row.update(timing(cfg, args.timing_steps, args.instances))
         rows.append(row)
+        print(json.dumps(row), file=sys.stderr)
+    occupancy_rows = []
+    for source, name in OCCUPANCY.items():
+        row = {"occupancy": source}
+        if args.timing_only:
+            row.update({k: v for k, v in next(r for r in previous["occupancy"] if r["occupancy"] == source).items() if k not in TIMED})
+        else:
+            print(f"quality run: occupancy {source}", file=sys.stderr)
+            row.update({k: v for k, v in quality(name, PRESETS["cpu"], args.steps, args.instances, source).items() if k in ("wall_s", "held_out_psnr")})
+        print(f"timing run: occupancy {source}", file=sys.stderr)
+        row.update(timing(PRESETS["cpu"], args.timing_steps, args.instances, source))
+        occupancy_rows.append(row)
         print(json.dumps(row), file=sys.stderr)
     write_result("presets", {
         "command": "python -m benchmarks.bench_presets",
@@ -102,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         "rays_per_step": 4096,
         "threads": torch.get_num_threads(),
         "runs": rows,
+        "occupancy": occupancy_rows,
     })
     return 0
 

@@ -128,6 +128,14 @@ def presets_section(data: dict) -> list[str]:
             ],
         ),
         "",
+        "Where training rays take samples (the cpu preset, same runs and scoring): the visual hull carved from the masks, "
+        "a band one cell around the ground-truth surface, or the whole box.",
+        "",
+        *_table(
+            ["training occupancy", "samples / ray", "rays/s", "held-out PSNR (dB)"],
+            [[run["occupancy"], f"{run['samples_per_ray']:.1f}", f"{run['rays_per_s']:.0f}", f"{run['held_out_psnr']:.2f}"] for run in data.get("occupancy", [])],
+        ),
+        "",
     ]
 
 

@@ -12,10 +12,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+import trimesh
 from tqdm import tqdm
 
 from model.data.dataset import DatasetError, ObjectEntry, load_index, load_views
 from model.fit import scene_box
+from model.metrics import sample_surface
 from model.occupancy import OccupancyGrid, carve_from_masks, dilate
 from model.rays import camera_directions
 
@@ -102,21 +104,46 @@ def load_category(root: Path, split: str = "train", limit: int | None = None, pr
     return CategoryData(root, instances, torch.stack(images), torch.stack(poses), float(focal), int(width), int(height))
 
 
-def shape_grids(data: CategoryData, resolution: int = 64, progress: bool = True) -> torch.Tensor:
-    """Visual hull of every shape, ``[shapes, G, G, G]`` bool, carved from its first instance's masks.
+OCCUPANCY_SOURCES = ("hull", "mesh", "box")
 
-    Training marches rays only through these cells; colour variants share the silhouette.
+
+def shape_grids(data: CategoryData, resolution: int = 64, progress: bool = True, source: str = "hull") -> torch.Tensor:
+    """Training occupancy of every shape, ``[shapes, G, G, G]`` bool, from its first instance.
+
+    Training marches rays only through these cells; colour variants share them. ``source``:
+    - ``hull``: the visual hull carved from the training masks (needs nothing but the images);
+    - ``mesh``: cells within one cell of the ground-truth surface (``mesh.ply``; tighter than the
+      hull in concavities, but only for datasets that ship meshes);
+    - ``box``: every cell (no empty-space skipping; the reference the others are measured against).
     """
+    if source not in OCCUPANCY_SOURCES:
+        raise ValueError(f"unknown occupancy source {source!r}; choose one of {OCCUPANCY_SOURCES}")
     lo, hi = scene_box("cpu")
     first = {}
     for n, inst in enumerate(data.instances):
         first.setdefault(inst.shape_index, n)
     grids = []
-    for shape in tqdm(range(data.shapes), desc="carving hulls", unit="shape", disable=not progress):
+    for shape in tqdm(range(data.shapes), desc=f"occupancy ({source})", unit="shape", disable=not progress):
         n = first[shape]
-        masks = data.images[n, ..., 3] > 0
-        grids.append(carve_from_masks(data.c2w[n], masks, data.focal, lo, hi, resolution=resolution).occupied)
+        if source == "box":
+            grids.append(torch.ones(resolution, resolution, resolution, dtype=torch.bool))
+        elif source == "mesh":
+            grids.append(surface_cells(data.root / data.instances[n].id / "mesh.ply", resolution, lo, hi))
+        else:
+            masks = data.images[n, ..., 3] > 0
+            grids.append(carve_from_masks(data.c2w[n], masks, data.focal, lo, hi, resolution=resolution).occupied)
     return torch.stack(grids)
+
+
+def surface_cells(mesh_path: Path, resolution: int, lo: torch.Tensor, hi: torch.Tensor, points: int = 200_000) -> torch.Tensor:
+    """Cells within one cell of a mesh's surface: dense surface samples, marked, then dilated."""
+    if not mesh_path.is_file():
+        raise DatasetError(f"{mesh_path} is missing: occupancy from meshes needs each object's ground-truth mesh; use the hull instead")
+    samples = torch.from_numpy(sample_surface(trimesh.load(mesh_path, force="mesh", process=False), points)).float()
+    cells = ((samples - lo) / (hi - lo) * resolution).floor().long().clamp_(0, resolution - 1)
+    occupied = torch.zeros(resolution, resolution, resolution, dtype=torch.bool)
+    occupied[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+    return dilate(occupied, 1)
 
 
 def grid_of(occupied: torch.Tensor, device=None) -> OccupancyGrid:

@@ -33,7 +33,7 @@ import torch.distributed as dist
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from model.category import CategoryData, free_space_grids, free_space_points, grid_of, load_category, shape_grids
+from model.category import OCCUPANCY_SOURCES, CategoryData, free_space_grids, free_space_points, grid_of, load_category, shape_grids
 from model.data.dataset import load_views
 from model.device import default_device
 from model.evaluate import composite_over
@@ -64,6 +64,7 @@ class TrainConfig:
     free_space_weight: float = 0.1
     free_space_points: int = 1024
     grid_resolution: int = 64
+    occupancy: str = "hull"  # training occupancy: hull, mesh or box (model.category.shape_grids)
     render: RenderConfig = field(default_factory=lambda: RenderConfig(termination_threshold=0.0))
     validate_every: int = 500
     validation_instances: int = 4
@@ -276,7 +277,7 @@ def train(
     data = load_category(data_root, "train", limit, progress=progress and workers.main)
     if tcfg.objects_per_step < 1 or tcfg.rays_per_step < tcfg.objects_per_step:
         raise ValueError("objects_per_step must be >= 1 and rays_per_step at least one ray per object")
-    grids = shape_grids(data, tcfg.grid_resolution, progress=progress and workers.main)
+    grids = shape_grids(data, tcfg.grid_resolution, progress=progress and workers.main, source=tcfg.occupancy)
     free_grids = free_space_grids(grids)
     log.info("training grids keep %.1f%% of the scene box on average", 100 * grids.float().mean().item())
     net = HyperNetwork(hcfg, len(data.instances), data.shape_index, seed=tcfg.seed).to(device)
@@ -403,6 +404,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--validate-every", type=int, default=defaults.validate_every, help="steps between validation renders (0: never)")
     parser.add_argument("--checkpoint-every", type=int, default=defaults.checkpoint_every)
     parser.add_argument("--limit", type=int, help="train on the first N instances only")
+    parser.add_argument("--occupancy", choices=OCCUPANCY_SOURCES, default=defaults.occupancy,
+                        help="where training rays take samples: the visual hull (default), cells at the ground-truth mesh surface, or the whole box")
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint (its settings win)")
     parser.add_argument("--until", type=int, help="stop after this step with a checkpoint (continue later with --resume)")
@@ -418,6 +421,7 @@ def run_from_args(args) -> int:
         lr=args.lr,
         validate_every=args.validate_every,
         checkpoint_every=args.checkpoint_every,
+        occupancy=args.occupancy,
         seed=args.seed,
     )
     summary = train(args.data, args.out, preset(args.preset), tcfg, resume=args.resume, until=args.until, limit=args.limit)

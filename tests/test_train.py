@@ -52,6 +52,19 @@ def test_category_loads_the_train_split_as_uint8(chairs):
     assert grids.shape == (data.shapes, 24, 24, 24) and 0.2 < grids.float().mean() < 0.75
 
 
+def test_mesh_occupancy_is_inside_the_hull_and_box_is_everything(chairs):
+    data = load_category(chairs, progress=False)
+    hull = shape_grids(data, 24, progress=False, source="hull")
+    mesh = shape_grids(data, 24, progress=False, source="mesh")
+    box = shape_grids(data, 24, progress=False, source="box")
+    assert box.all() and mesh.shape == hull.shape == box.shape
+    # the surface band is tighter than the hull, and (up to the hull's own one-cell margin) inside it
+    assert 0 < mesh.float().mean() < hull.float().mean()
+    assert (mesh & ~free_space_grids(hull)).sum() == 0
+    with pytest.raises(ValueError, match="occupancy source"):
+        shape_grids(data, 24, progress=False, source="voxels")
+
+
 def test_free_space_points_avoid_the_grown_object():
     occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
     occupied[3:5, 3:5, 3:5] = True
