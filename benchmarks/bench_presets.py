@@ -84,7 +84,7 @@ TIMED = ("rays_per_s", "steps_per_s", "samples_per_ray")
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=1500, help="training steps of each quality run")
+    parser.add_argument("--steps", type=int, default=1000, help="training steps of each quality run")
     parser.add_argument("--instances", type=int, default=16, help="first N instances of the train split")
     parser.add_argument("--timing-steps", type=int, default=60)
     parser.add_argument("--timing-only", action="store_true", help="re-measure speed only; keep the quality figures on file")

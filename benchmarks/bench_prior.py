@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--variants", type=int, default=4, help="colour variants per mesh")
     parser.add_argument("--steps", type=int, default=40000, help="training steps of the cpu prior")
-    parser.add_argument("--ablation-steps", type=int, default=4000, help="training steps of the no-MRHE prior and of the hash-grid prior it is compared with")
+    parser.add_argument("--ablation-steps", type=int, default=3000, help="training steps of the no-MRHE prior and of the hash-grid prior it is compared with")
     parser.add_argument("--until", type=int, help="stop training at this step (resume by running again)")
     parser.add_argument("--objects", type=int, default=10)
     parser.add_argument("--pairs", type=int, default=10)
