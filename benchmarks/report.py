@@ -160,7 +160,8 @@ def compression_section(data: dict, title: str) -> list[str]:
         ),
         "",
         f"PSNR gap **{data['psnr_gap_db']:.2f} dB**. Storage: the prior is {st['prior_bytes'] / 1e6:.1f} MB for {st['prior_instances']} instances; "
-        f"per-object fits would take {st['per_object_bytes_for_all_instances'] / 1e6:.1f} MB ({st['compression_ratio']:.1f}x).",
+        f"per-object fits of {st['per_object_parameters']:,} parameters each would take {st['per_object_bytes_for_all_instances'] / 1e6:.1f} MB "
+        f"at the same precision ({st['weights_dtype']}): the prior is {st['compression_ratio']:.2f}x smaller.",
         "",
     ]
     if "hypernet_mrhe_same_steps" in data:

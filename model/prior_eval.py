@@ -13,6 +13,7 @@ foreground pixels, converted with **scikit-image** (perceptually uniform, unlike
 from __future__ import annotations
 
 import json
+import math
 import logging
 import random
 import statistics
@@ -151,6 +152,11 @@ def compression(
     single = _summary([r["per_object"] for r in rows])
     prior_bytes = (Path(run) / PRIOR_WEIGHTS).stat().st_size
     instances = len(meta["instances"])
+    # storage is compared at the prior's own precision: a fit's file also holds float32 weights and
+    # its occupancy grid, which a generated NeRF rebuilds from its density instead of storing
+    fit_parameters = sum(math.prod(shape) for shape in fit_cfg.field.param_shapes().values())
+    itemsize = torch.empty((), dtype=getattr(torch, meta.get("weights_dtype", "float32"))).element_size()
+    per_object_bytes = fit_parameters * itemsize
     return {
         "hypernet": hyper,
         "per_object": single,
@@ -162,9 +168,12 @@ def compression(
         "storage": {
             "prior_bytes": prior_bytes,
             "prior_instances": instances,
-            "per_object_bytes_mean": statistics.fmean(fit_bytes),
-            "per_object_bytes_for_all_instances": statistics.fmean(fit_bytes) * instances,
-            "compression_ratio": statistics.fmean(fit_bytes) * instances / prior_bytes,
+            "weights_dtype": meta.get("weights_dtype", "float32"),
+            "per_object_parameters": fit_parameters,
+            "per_object_bytes": per_object_bytes,
+            "per_object_bytes_for_all_instances": per_object_bytes * instances,
+            "compression_ratio": per_object_bytes * instances / prior_bytes,
+            "per_object_file_bytes_mean": statistics.fmean(fit_bytes),
         },
         "rows": rows,
         "run": str(run),

@@ -4,6 +4,7 @@ evaluation commands."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -153,7 +154,12 @@ def test_compression_report_compares_with_per_object_fits(trained, chairs, tmp_p
     for side in ("hypernet", "per_object"):
         assert report[side]["psnr"] > 10 and 0 < report[side]["ssim"] <= 1
     assert report["psnr_gap_db"] == pytest.approx(report["per_object"]["psnr"] - report["hypernet"]["psnr"])
-    assert report["storage"]["prior_bytes"] == (run / PRIOR_WEIGHTS).stat().st_size
+    storage = report["storage"]
+    assert storage["prior_bytes"] == (run / PRIOR_WEIGHTS).stat().st_size
+    # per-object storage counts the same field's parameters at the prior's half precision
+    field_parameters = sum(math.prod(shape) for shape in preset("tiny").field.param_shapes().values())
+    assert storage["weights_dtype"] == "float16" and storage["per_object_bytes"] == 2 * field_parameters
+    assert storage["compression_ratio"] == pytest.approx(storage["per_object_bytes_for_all_instances"] / storage["prior_bytes"])
     # the fits are cached: a second evaluation reuses them
     written = {p: p.stat().st_mtime_ns for p in (tmp_path / "fits").glob("*/field.safetensors")}
     again = compression(run, chairs, objects=2, fits=tmp_path / "fits", fit_steps=40, mesh_resolution=24)
