@@ -60,7 +60,7 @@ def field_mesh(params: FieldParams, field_cfg: FieldConfig, grid: OccupancyGrid,
     Density in cells the occupancy grid marks empty is taken as zero, as the renderer does, so the
     mesh shows the NeRF that renders and not the haze left where no ray constrains it.
     """
-    device = params["tables"].device
+    device = next(iter(params.values())).device
     box = grid.tight_box()
     if box is None:
         return trimesh.Trimesh()

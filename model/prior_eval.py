@@ -89,7 +89,7 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def evaluate_generated(net: HyperNetwork, params: FieldParams, test_views, mesh_resolution: int) -> tuple[dict, torch.Tensor, trimesh.Trimesh]:
-    device = params["tables"].device if "tables" in params else next(iter(params.values())).device
+    device = next(iter(params.values())).device
     grid = generated_grid(params, net.cfg.field, device)
     metrics, renders, mesh = evaluate_field(params, net.cfg.field, grid, test_views, RenderConfig(), mesh_resolution=mesh_resolution)
     metrics["occupied_fraction"] = grid.fraction
