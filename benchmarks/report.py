@@ -161,14 +161,15 @@ def compression_section(data: dict, title: str) -> list[str]:
         "",
         f"PSNR gap **{data['psnr_gap_db']:.2f} dB**. Storage: the prior is {st['prior_bytes'] / 1e6:.1f} MB for {st['prior_instances']} instances; "
         f"per-object fits of {st['per_object_parameters']:,} parameters each would take {st['per_object_bytes_for_all_instances'] / 1e6:.1f} MB "
-        f"at the same precision ({st['weights_dtype']}): the prior is {st['compression_ratio']:.2f}x smaller.",
+        f"at the same precision ({st['weights_dtype']}), {st['compression_ratio']:.2f}x the prior's size.",
         "",
     ]
     if "hypernet_mrhe_same_steps" in data:
         same = data["hypernet_mrhe_same_steps"]
         lines += [
-            f"At equal training ({data['training_steps']} steps each) the hash-grid prior's gap is {same['psnr_gap_db']:.2f} dB: "
-            f"removing MRHE costs **{same['psnr'] - h['psnr']:.2f} dB**.",
+            f"At equal training steps ({data['training_steps']} each) the hash-grid prior's gap is {same['psnr_gap_db']:.2f} dB, "
+            f"so the prior without MRHE scores **{h['psnr'] - same['psnr']:+.2f} dB** against it; the training table and curve "
+            "above compare the runs at equal time.",
             "",
         ]
     return lines
