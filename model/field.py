@@ -151,7 +151,8 @@ def density(params: FieldParams, points: torch.Tensor, cfg: FieldConfig) -> tupl
     feats = encode(points, params["tables"], cfg.encoding)
     hidden = torch.relu(feats @ params["density0"])
     out = hidden @ params["density1"]
-    return truncated_exp(out[..., 0]), out[..., 1:]
+    # the exponential in float32: under float16 autocast exp(log-density > 11.1) would overflow
+    return truncated_exp(out[..., 0].float()), out[..., 1:]
 
 
 def view_term(params: FieldParams, directions: torch.Tensor, cfg: FieldConfig) -> torch.Tensor:

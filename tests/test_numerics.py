@@ -106,6 +106,15 @@ def test_low_precision_autocast(tiny_field_cfg, dtype):
     assert (out["rgb"] - reference["rgb"]).abs().max() < 0.02
 
 
+def test_density_of_large_log_density_stays_finite_under_float16_autocast(tiny_field_cfg):
+    """exp(x) overflows float16 above x = 11.1; densities of 1e6 (log 13.8) must survive autocast."""
+    params = constant_field(tiny_field_cfg, sigma=1e6)
+    with torch.autocast("cpu", dtype=torch.float16):
+        sigma, _ = density(params, torch.rand(1, 16, 3), tiny_field_cfg)
+    assert sigma.dtype == torch.float32 and torch.isfinite(sigma).all()
+    assert torch.allclose(sigma, torch.full_like(sigma, 1e6), rtol=2e-2)
+
+
 def test_all_white_and_all_black_targets_train_to_finite_values(tiny_field_cfg):
     params = {k: v.clone().requires_grad_() for k, v in constant_field(tiny_field_cfg, sigma=1.0).items()}
     _, _, o, d = camera(width=8)
