@@ -9,7 +9,9 @@ the compiler flags, the compiler, torch, Python and, because the code is built w
 same cache from another machine, therefore rebuilds instead of loading a stale or unsupported
 binary. A build happens in a private folder and the finished library is moved into place
 atomically, so concurrent processes never see a half-written file; later processes load it
-directly without running ninja.
+directly without running ninja. Loading a library marks it used (its mtime); after each new
+build, other builds of the same extension unused for ``STALE_AFTER_DAYS`` are deleted, so
+edits and upgrades do not pile up binaries while a cache shared by other machines keeps theirs.
 
 ``python -m model.kernels`` builds everything ahead of time.
 """
@@ -26,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 import torch
@@ -39,6 +42,8 @@ CFLAGS = ("-O3", "-march=native", "-fopenmp", "-ffp-contract=off")
 LDFLAGS = ("-fopenmp",)
 HASHGRID_SOURCES = ("hashgrid.cpp",)
 HASHGRID_NAMESPACE = "hypnerf_hashgrid"
+
+STALE_AFTER_DAYS = 30
 
 _build_lock = threading.Lock()
 
@@ -90,6 +95,7 @@ def _build_or_load(stem: str, sources: tuple[str, ...]) -> Path:
     library = library_path(stem)
     if library.exists():
         torch.ops.load_library(str(library))
+        _mark_used(library)
         return library
     from torch.utils import cpp_extension
 
@@ -114,7 +120,32 @@ def _build_or_load(stem: str, sources: tuple[str, ...]) -> Path:
     finally:
         shutil.rmtree(build_dir, ignore_errors=True)
     log.info("built %s", library)
+    prune_stale_builds(stem, keep=library.parent)
     return library
+
+
+def _mark_used(library: Path) -> None:
+    try:
+        os.utime(library)
+    except OSError:  # a read-only cache still loads
+        pass
+
+
+def prune_stale_builds(stem: str, keep: Path, max_age_days: float = STALE_AFTER_DAYS) -> list[Path]:
+    """Delete the cache folders of ``stem`` other than ``keep`` whose library was last used more
+    than ``max_age_days`` ago (or that hold no library: a build that died); returns them."""
+    cutoff = time.time() - max_age_days * 86400
+    removed = []
+    for folder in cache_root().glob(f"{stem}_*"):
+        if not folder.is_dir() or folder.resolve() == keep.resolve():
+            continue
+        library = folder / f"{folder.name}.so"
+        last_used = library.stat().st_mtime if library.exists() else folder.stat().st_mtime
+        if last_used < cutoff:
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+            log.info("removed %s (unused for over %g days)", folder, max_age_days)
+    return removed
 
 
 @functools.lru_cache(maxsize=1)

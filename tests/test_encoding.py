@@ -6,6 +6,7 @@ import json
 import math
 import os
 import shutil
+import time
 
 import pytest
 import torch
@@ -324,6 +325,26 @@ def test_shape_errors():
 
 
 # ----------------------------------------------------------------------------- build cache
+
+
+def test_stale_builds_are_pruned_and_recent_ones_kept(tmp_path, monkeypatch):
+    monkeypatch.setenv("HYPNERF_CACHE", str(tmp_path))
+    old_time = time.time() - 40 * 86400
+    folders = {}
+    for name in ("hashgrid_current", "hashgrid_recent", "hashgrid_stale", "hashgrid_died", "other_stale"):
+        folder = tmp_path / name
+        folder.mkdir()
+        if name != "hashgrid_died":
+            (folder / f"{name}.so").write_bytes(b"")
+        folders[name] = folder
+    for name in ("hashgrid_current", "hashgrid_stale", "other_stale"):
+        os.utime(folders[name] / f"{name}.so", (old_time, old_time))
+    os.utime(folders["hashgrid_died"], (old_time, old_time))
+    removed = kernels.prune_stale_builds("hashgrid", keep=folders["hashgrid_current"])
+    assert sorted(p.name for p in removed) == ["hashgrid_died", "hashgrid_stale"]
+    # the build in use survives however old, other extensions and recently used builds too
+    assert all(folders[n].exists() for n in ("hashgrid_current", "hashgrid_recent", "other_stale"))
+    assert not folders["hashgrid_stale"].exists() and not folders["hashgrid_died"].exists()
 
 
 def test_build_key_tracks_sources_and_cache_env(tmp_path, monkeypatch):
