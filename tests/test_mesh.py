@@ -128,7 +128,9 @@ def test_export_round_trip(coloured_sphere, tmp_path, fmt):
     loaded = trimesh.load(path, force="mesh")
     assert len(loaded.vertices) == len(coloured_sphere.vertices)
     assert len(loaded.faces) == len(coloured_sphere.faces)
-    assert np.allclose(loaded.vertices, coloured_sphere.vertices, atol=1e-6)
+    # GLB is Y-up as glTF requires: (x, y, z) in the Z-up world is (x, z, -y) in the file
+    expected = coloured_sphere.vertices[:, [0, 2, 1]] * [1, 1, -1] if fmt == "glb" else coloured_sphere.vertices
+    assert np.allclose(loaded.vertices, expected, atol=1e-6)
     if fmt in ("glb", "ply"):
         assert np.array_equal(loaded.visual.vertex_colors, coloured_sphere.visual.vertex_colors)
 
@@ -162,3 +164,14 @@ def test_extract_mesh_on_cuda():
     mesh = extract_mesh(density, BOX_MIN.cuda(), BOX_MAX.cuda(), resolution=32, color_fn=position_color)
     assert devices == {"cuda"}
     assert np.all(np.abs(np.linalg.norm(mesh.vertices, axis=1) - RADIUS) < 0.1 / 31)
+
+
+def test_glb_is_y_up_and_other_formats_keep_the_world():
+    """A chair standing along the world's +Z stands along +Y in GLB viewers."""
+    tall = trimesh.creation.box(extents=[0.2, 0.3, 0.9])
+    tall.apply_translation([0.0, 0.0, 0.45])  # standing on the ground plane z = 0
+    glb = trimesh.load(io.BytesIO(mesh_bytes(tall, "glb")), file_type="glb", force="mesh")
+    assert np.allclose(glb.extents, [0.2, 0.9, 0.3]) and np.isclose(glb.bounds[0, 1], 0.0)
+    ply = trimesh.load(io.BytesIO(mesh_bytes(tall, "ply")), file_type="ply", force="mesh")
+    assert np.allclose(ply.bounds, tall.bounds)
+    assert np.allclose(tall.bounds[:, 2], [0.0, 0.9])  # the caller's mesh is left as it was
