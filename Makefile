@@ -39,7 +39,8 @@ bench: install
 	$(BIN)/python -m benchmarks.run_all
 
 # The category prior (hours on 2 cores): dataset with colour variants, training, compression,
-# ablation, disentanglement, then the hypernetwork presets compared. Stages already done are skipped; training resumes where it stopped.
+# ablation, disentanglement, then the hypernetwork presets compared. Stages already done are
+# skipped; training resumes where it stopped.
 bench-prior: install
 	$(BIN)/pip install --quiet 'matplotlib>=3.8'
 	$(BIN)/python -m benchmarks.bench_prior

@@ -60,13 +60,14 @@ def quality(name: str, cfg: HyperNetConfig, steps: int, instances: int, occupanc
     net, meta = load_prior(run)
     data = load_category(DATA, "train", instances, progress=False)
     views = validation_views(data, instances)
+    counts = net.head_parameter_counts()
     return {
         "steps": meta["summary"]["steps"],
         "wall_s": meta["summary"]["wall_s"],
         "held_out_psnr": validate(net, views, torch.device("cpu")),
         "weights_bytes": (run / PRIOR_WEIGHTS).stat().st_size,
-        "parameters": sum(net.head_parameter_counts().values()),
-        "table_head_parameters": net.head_parameter_counts()["tables"],
+        "parameters": sum(counts.values()),
+        "table_head_parameters": counts["tables"],
     }
 
 
@@ -82,42 +83,55 @@ def timing(cfg: HyperNetConfig, steps: int, instances: int, occupancy: str = "hu
 TIMED = ("rays_per_s", "steps_per_s", "samples_per_ray")
 
 
+def measured_row(row: dict, key: str, previous: list[dict] | None, measure_quality, measure_speed) -> dict:
+    """``row`` with its quality figures (measured, or the ones on file when ``previous`` is given)
+    and freshly measured speed."""
+    if previous is not None:
+        row.update({k: v for k, v in next(r for r in previous if r[key] == row[key]).items() if k not in TIMED})
+    else:
+        print(f"quality run: {key} {row[key]}", file=sys.stderr)
+        row.update(measure_quality())
+    print(f"timing run: {key} {row[key]}", file=sys.stderr)
+    row.update(measure_speed())
+    print(json.dumps(row), file=sys.stderr)
+    return row
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1000, help="training steps of each quality run")
     parser.add_argument("--instances", type=int, default=16, help="first N instances of the train split")
     parser.add_argument("--timing-steps", type=int, default=60)
-    parser.add_argument("--timing-only", action="store_true", help="re-measure speed only; keep the quality figures on file")
+    parser.add_argument("--timing-only", action="store_true", help="re-measure speed only, keeping the quality figures on file (and their --steps and --instances)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (timings are comparable only at equal threads on a quiet machine)")
     args = parser.parse_args(argv)
     ensure_dataset(4)
     torch.set_num_threads(args.threads)
     previous = json.loads((RESULTS / "presets.json").read_text()) if (RESULTS / "presets.json").is_file() else {}
-    rows = []
-    for name, cfg in PRESETS.items():
-        row = {"preset": name, "shape_code_dim": cfg.shape_code_dim, "color_code_dim": cfg.color_code_dim,
-               "head_hidden": cfg.head_hidden, "head_layers": cfg.head_layers, "table_rank": cfg.table_rank}
-        if args.timing_only:
-            row.update({k: v for k, v in next(r for r in previous["runs"] if r["preset"] == name).items() if k not in TIMED})
-        else:
-            print(f"quality run: {name}", file=sys.stderr)
-            row.update(quality(name, cfg, args.steps, args.instances))
-        print(f"timing run: {name}", file=sys.stderr)
-        row.update(timing(cfg, args.timing_steps, args.instances))
-        rows.append(row)
-        print(json.dumps(row), file=sys.stderr)
-    occupancy_rows = []
-    for source, name in OCCUPANCY.items():
-        row = {"occupancy": source}
-        if args.timing_only:
-            row.update({k: v for k, v in next(r for r in previous["occupancy"] if r["occupancy"] == source).items() if k not in TIMED})
-        else:
-            print(f"quality run: occupancy {source}", file=sys.stderr)
-            row.update({k: v for k, v in quality(name, PRESETS["cpu"], args.steps, args.instances, source).items() if k in ("wall_s", "held_out_psnr")})
-        print(f"timing run: occupancy {source}", file=sys.stderr)
-        row.update(timing(PRESETS["cpu"], args.timing_steps, args.instances, source))
-        occupancy_rows.append(row)
-        print(json.dumps(row), file=sys.stderr)
+    if args.timing_only and not previous:
+        parser.error(f"--timing-only re-measures speed beside quality figures on file, and {RESULTS / 'presets.json'} does not exist; run without it first")
+    if args.timing_only:
+        # the speed is measured on the instances the quality figures on file were trained on
+        args.steps, args.instances = previous["steps"], previous["instances"]
+    rows = [
+        measured_row(
+            {"preset": name, "shape_code_dim": cfg.shape_code_dim, "color_code_dim": cfg.color_code_dim,
+             "head_hidden": cfg.head_hidden, "head_layers": cfg.head_layers, "table_rank": cfg.table_rank},
+            "preset", previous["runs"] if args.timing_only else None,
+            lambda: quality(name, cfg, args.steps, args.instances),
+            lambda: timing(cfg, args.timing_steps, args.instances),
+        )
+        for name, cfg in PRESETS.items()
+    ]
+    cpu = PRESETS["cpu"]
+    occupancy_rows = [
+        measured_row(
+            {"occupancy": source}, "occupancy", previous["occupancy"] if args.timing_only else None,
+            lambda: {k: v for k, v in quality(name, cpu, args.steps, args.instances, source).items() if k in ("wall_s", "held_out_psnr")},
+            lambda: timing(cpu, args.timing_steps, args.instances, source),
+        )
+        for source, name in OCCUPANCY.items()
+    ]
     write_result("presets", {
         "command": "python -m benchmarks.bench_presets",
         "dataset": str(DATA.relative_to(DATA.parents[1])),

@@ -18,9 +18,9 @@ from benchmarks.common import RESULTS, ROOT, hypnerf, write_result
 
 DATA = ROOT / "data" / "sh3d-chair-variants"
 RUNS = ROOT / "runs"
-# 8 objects x 512 rays per step; validation and checkpoints every 1000 steps (each costs a few seconds)
 # the per-object reference fits take as many steps as the fit benchmark (benchmarks/bench_fit.py)
 FIT_STEPS = 2000
+# 8 objects x 512 rays per step; validation and checkpoints every 1000 steps (each costs a few seconds)
 TRAIN_ARGS = ("--objects-per-step", "8", "--rays", "4096", "--validate-every", "1000", "--checkpoint-every", "1000")
 
 

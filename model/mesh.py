@@ -155,14 +155,12 @@ Z_UP_TO_Y_UP = trimesh.transformations.rotation_matrix(-np.pi / 2, [1.0, 0.0, 0.
 def mesh_bytes(mesh: trimesh.Trimesh, format: str) -> bytes:
     """``mesh`` encoded as ``format`` (``glb``, ``ply`` binary, or ``obj``), ready to stream.
 
-GLB is written Y-up (glTF's convention); PLY and OBJ in the project's Z-up world coordinates.
-
-    An empty mesh still encodes (a file with no geometry), so a caller can serve it.
+    GLB is written Y-up, as glTF specifies (viewers would show a Z-up mesh lying on its back);
+    PLY and OBJ keep the project's Z-up world coordinates. An empty mesh still encodes (a file
+    with no geometry), so a caller can serve it.
     """
     fmt = _check_format(format)
     if fmt == "glb" and len(mesh.vertices):
-        # glTF is Y-up by specification (viewers show a Z-up mesh lying on its back); PLY and OBJ
-        # keep the project's Z-up world
         mesh = mesh.copy()
         mesh.apply_transform(Z_UP_TO_Y_UP)
     if fmt == "obj":

@@ -13,8 +13,8 @@ foreground pixels, converted with **scikit-image** (perceptually uniform, unlike
 from __future__ import annotations
 
 import json
-import math
 import logging
+import math
 import random
 import statistics
 from pathlib import Path
