@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet --upgrade pip setuptools wheel
 	$(BIN)/pip install --quiet torch==2.13.0
 	$(BIN)/pip install --quiet --no-build-isolation -e '.[test]'
-	$(BIN)/python -m model.kernels
+	$(BIN)/python -m model.nerf.encodings.kernels
 	touch $(STAMP)
 
 run: demo

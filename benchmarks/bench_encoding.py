@@ -8,11 +8,11 @@ points per second of each pass:
 - ``forward+backward``: encoding, then backward of a fixed upstream gradient to both the table
   parameters and the points (nerfstudio's torch path is differentiable in both too).
 
-Implementations: ``hypnerf-kernel`` (``model.encoding.encode`` on CPU: the C++/OpenMP extension),
+Implementations: ``hypnerf-kernel`` (``model.nerf.encodings.hashgrid.encode`` on CPU: the C++/OpenMP extension),
 ``nerfstudio-torch`` (``nerfstudio.field_components.encodings.HashEncoding`` with
 ``implementation="torch"``; it owns its table as an ``nn.Parameter`` and uses
 floor(N_min * b^l) resolutions, hashing every level) and ``hypnerf-reference`` (the pure-PyTorch
-path of ``model.encoding``). ``hypnerf-kernel-batched`` encodes B = 8 objects, each with its
+path of ``model.nerf.encodings.hashgrid``). ``hypnerf-kernel-batched`` encodes B = 8 objects, each with its
 own tables (which only hypnerf supports); every run records its ``batch`` and ``points``.
 
 nerfstudio is a benchmark-only dependency (``pip install --no-deps nerfstudio==1.1.5 ...``); if it
@@ -38,7 +38,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from model.encoding import HashGridConfig, encode, encode_reference, init_tables, uses_kernel  # noqa: E402
+from model.nerf.encodings.hashgrid import HashGridConfig, encode, encode_reference, init_tables, uses_kernel  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "encoding.json"
 PASSES = ("forward", "forward+backward")

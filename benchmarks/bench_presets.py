@@ -32,9 +32,10 @@ import torch
 
 from benchmarks.bench_prior import DATA, RUNS, ensure_dataset
 from benchmarks.common import RESULTS, write_result
-from model.category import load_category
-from model.hypernet import HyperNetConfig, preset
-from model.train import PRIOR_WEIGHTS, TrainConfig, load_prior, train, validate, validation_views
+from model.data.category import load_category
+from model.prior.hypernet import HyperNetConfig, preset
+from model.prior.io import PRIOR_WEIGHTS, load_prior
+from model.train.prior import TrainConfig, train, validate, validation_views
 
 PRESETS: dict[str, HyperNetConfig] = {
     "paper": preset("paper"),
@@ -57,14 +58,19 @@ def quality(name: str, cfg: HyperNetConfig, steps: int, instances: int, occupanc
     run = RUNS / "presets" / name
     if not (run / PRIOR_WEIGHTS).is_file():
         train(DATA, run, cfg, train_config(steps, validate_every=0, occupancy=occupancy), limit=instances)
-    net, meta = load_prior(run)
+    prior = load_prior(run)
+    net, meta = prior.net, prior.meta
     data = load_category(DATA, "train", instances, progress=False)
     views = validation_views(data, instances)
     counts = net.head_parameter_counts()
+    scores = validate(net, data, views, torch.device("cpu"))
     return {
         "steps": meta["summary"]["steps"],
         "wall_s": meta["summary"]["wall_s"],
-        "held_out_psnr": validate(net, views, torch.device("cpu")),
+        "held_out_psnr": scores["psnr"],
+        "held_out_psnr_fg": scores["psnr_fg"],
+        "floor_psnr": scores["floor_psnr"],
+        "floor_psnr_fg": scores["floor_psnr_fg"],
         "weights_bytes": (run / PRIOR_WEIGHTS).stat().st_size,
         "parameters": sum(counts.values()),
         "table_head_parameters": counts["tables"],

@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from model.encoding import HashGridConfig
-from model.field import FieldConfig, init_params
-from model.rays import focal_from_fov, pixel_rays
+from model.nerf.encodings.hashgrid import HashGridConfig
+from model.nerf.fields.hashgrid import FieldConfig, init_params
+from model.nerf.rays import Intrinsics, focal_from_fov, pixel_rays
 
 TINY_ENCODING = HashGridConfig(levels=4, log2_table_size=10, features=2, base_resolution=4, finest_resolution=64)
 
@@ -41,9 +41,9 @@ def constant_field(cfg: FieldConfig, sigma: float, logit: float = 0.0) -> dict[s
 
 
 def camera(distance: float = 2.0, width: int = 16, fov: float = 2 * math.atan(0.5)):
-    """An identity-rotation camera on +Z looking at the origin, and its rays."""
+    """An identity-rotation camera on +Z looking at the origin: pose, intrinsics and its rays."""
     c2w = torch.eye(4)
     c2w[2, 3] = distance
-    focal = focal_from_fov(width, fov)
-    origins, directions = pixel_rays(c2w, width, width, focal)
-    return c2w, focal, origins.reshape(-1, 3), directions.reshape(-1, 3)
+    intrinsics = Intrinsics.centred(width, width, focal_from_fov(width, fov))
+    origins, directions = pixel_rays(c2w, intrinsics)
+    return c2w, intrinsics, origins.reshape(-1, 3), directions.reshape(-1, 3)

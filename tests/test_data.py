@@ -18,7 +18,7 @@ from PIL import Image
 from model.data import sh3d
 from model.data.build import RenderSettings, build_dataset
 from model.data.cameras import CAMERA_ANGLE_X, RADIUS, evaluation_poses, fibonacci_hemisphere, training_poses
-from model.data.commands import register
+from model.cli.data import register
 from model.data.dataset import (
     OBJECT_SPLITS,
     DatasetError,
@@ -31,7 +31,8 @@ from model.data.imports import mesh_file_objects, read_captions
 from model.data.meshes import normalise
 from model.data.raycast import render_views
 from model.data.synth import chair_mesh, sample_spec, synth_objects
-from model.rays import focal_from_fov
+from model.nerf.rays import focal_from_fov
+from model.nerf.scene import UNIT_BOX
 
 TINY = RenderSettings(views=6, resolution=24)
 
@@ -81,8 +82,9 @@ def test_synth_dataset_reads_back(synth_root):
         assert views.images.shape == (6, 24, 24, 4) and views.images.dtype == torch.float32
         assert views.c2w.shape == (6, 4, 4)
         assert views.width == views.height == 24
-        assert views.focal == pytest.approx(0.5 * 24 / 0.5)
-        assert torch.equal(views.aabb, torch.tensor([[-0.5] * 3, [0.5] * 3]))
+        assert views.camera.fx == views.camera.fy == pytest.approx(0.5 * 24 / 0.5)
+        assert (views.camera.cx, views.camera.cy) == (12.0, 12.0)
+        assert views.scene == UNIT_BOX
         alpha = views.images[..., 3]
         assert (alpha == 0).any() and (alpha == 1).any()
         # Every training camera sees the object.
@@ -376,7 +378,7 @@ def test_sh3d_category_list_matches_the_installed_package():
 
 def test_data_command_line(tmp_path, capsys):
     parser = argparse.ArgumentParser(prog="hypnerf")
-    register(parser.add_subparsers(dest="command", required=True))
+    register(parser.add_subparsers(dest="command", required=True).add_parser("data"))
     args = parser.parse_args(
         ["data", "synth", "--out", str(tmp_path / "s"), "--objects", "1", "--views", "2", "--res", "8", "--seed", "1"]
     )
@@ -482,8 +484,7 @@ def test_grouped_splits_match_ungrouped_splits_of_the_groups():
 
 def test_variants_must_be_positive(capsys, tmp_path):
     parser = argparse.ArgumentParser()
-    sub = parser.add_subparsers()
-    register(sub)
+    register(parser.add_subparsers().add_parser("data"))
     args = parser.parse_args(["data", "synth", "--out", str(tmp_path), "--objects", "1", "--variants", "0"])
     assert args.func(args) == 1
     assert "--variants must be at least 1" in capsys.readouterr().err

@@ -11,8 +11,9 @@ import time
 import pytest
 import torch
 
-from model import kernels
-from model.encoding import PRIMES, HashGridConfig, encode, encode_reference, init_tables, uses_kernel
+from model.nerf import config
+from model.nerf.encodings import kernels
+from model.nerf.encodings.hashgrid import PRIMES, HashGridConfig, encode, encode_reference, init_tables, uses_kernel
 
 PAPER = HashGridConfig()
 # Levels 0-2 dense ((res+1)^3 <= 4096), the rest hashed.
@@ -79,7 +80,7 @@ def _close(actual, expected, rtol):
 
 def test_config_json_roundtrip_and_shapes():
     cfg = HashGridConfig(levels=8, log2_table_size=12, features=4, base_resolution=8, finest_resolution=512)
-    restored = HashGridConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    restored = config.from_dict(HashGridConfig, json.loads(json.dumps(config.to_dict(cfg))))
     assert restored == cfg
     assert cfg.output_dim == 32
     assert cfg.table_shape == (8, 4096, 4)

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import math
 
+import json
+
 import pytest
 import torch
 
-from model.field import FieldConfig, validate_params
-from model.hypernet import HyperNetConfig, HyperNetwork, code_penalty, preset
-from model.pe_field import PEFieldConfig
+from model.nerf import config
+from model.nerf.fields.hashgrid import FieldConfig, validate_params
+from model.prior.hypernet import HyperNetConfig, HyperNetwork, code_penalty, preset
+from model.nerf.fields.positional import PEFieldConfig
 
 
 @pytest.fixture
@@ -88,7 +91,7 @@ def test_table_rank_bounds_the_table_head():
 def test_presets_serialise_and_emit_their_fields():
     for name in ("paper", "cpu", "cpu-no-mrhe", "tiny"):
         cfg = preset(name)
-        assert HyperNetConfig.from_dict(cfg.to_dict()) == cfg
+        assert config.from_dict(HyperNetConfig, json.loads(json.dumps(config.to_dict(cfg)))) == cfg
     assert isinstance(preset("cpu-no-mrhe").field, PEFieldConfig)
     paper = preset("paper")
     assert (paper.shape_code_dim, paper.color_code_dim, paper.head_hidden, paper.head_layers) == (512, 512, 512, 3)

@@ -5,8 +5,8 @@ import pytest
 import torch
 import trimesh
 
-from model.mesh import SUPPORTED_FORMATS, density_grid, export_mesh, extract_mesh, mesh_bytes
-from model.metrics import mesh_chamfer
+from model.nerf.mesh import SUPPORTED_FORMATS, density_grid, export_mesh, extract_mesh, mesh_bytes
+from model.eval.metrics import mesh_chamfer
 
 BOX_MIN = torch.tensor([-0.5, -0.5, -0.5])
 BOX_MAX = torch.tensor([0.5, 0.5, 0.5])

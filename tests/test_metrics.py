@@ -6,7 +6,7 @@ import torch
 import trimesh
 from skimage.metrics import structural_similarity
 
-from model.metrics import PSNR_CAP_DB, chamfer_distance, mesh_chamfer, psnr, sample_surface, ssim
+from model.eval.metrics import PSNR_CAP_DB, chamfer_distance, mesh_chamfer, psnr, sample_surface, ssim
 
 
 def _image(h=24, w=24, seed=0):

@@ -9,12 +9,14 @@ import pytest
 import torch
 
 from conftest import camera
-from model.field import FieldConfig
-from model.evaluate import field_mesh
-from model.fields import field_config_from_dict
-from model.occupancy import OccupancyGrid
-from model.pe_field import PEFieldConfig, positional_encoding
-from model.renderer import RenderConfig, render_rays
+from model.nerf.fields.hashgrid import FieldConfig
+from model.nerf.mesh import field_mesh
+from model.nerf import config
+from model.nerf.fields import field_config_from_dict
+from model.nerf.occupancy import OccupancyGrid
+from model.nerf.fields.positional import PEFieldConfig, positional_encoding
+from model.nerf.scene import UNIT_BOX
+from model.nerf.renderer import RenderConfig, render_rays
 
 TRAIN = RenderConfig(termination_threshold=0.0, color_weight_threshold=0.0, samples_per_ray=16)
 
@@ -81,9 +83,9 @@ def test_shapes_and_param_shapes_agree(tiny_pe_cfg):
 
 def test_dict_round_trip(tiny_pe_cfg):
     for cfg in (tiny_pe_cfg, PEFieldConfig(), PEFieldConfig(skip=None, color_hidden=7)):
-        data = cfg.to_dict()
+        data = config.to_dict(cfg)
         assert data["kind"] == "positional"
-        assert PEFieldConfig.from_dict(data) == cfg
+        assert config.from_dict(PEFieldConfig, data) == cfg
         rebuilt = field_config_from_dict(data)
         assert isinstance(rebuilt, PEFieldConfig) and rebuilt == cfg
 
@@ -181,7 +183,7 @@ def test_large_log_density_stays_finite_under_float16_autocast(tiny_pe_cfg):
 def test_render_rays_with_the_pe_field(tiny_pe_cfg):
     params = {k: v.clone().requires_grad_() for k, v in _params(tiny_pe_cfg).items()}
     _, _, o, d = camera(width=4)
-    out = render_rays(params, tiny_pe_cfg, o, d, TRAIN)
+    out = render_rays(params, tiny_pe_cfg, o, d, TRAIN, scene=UNIT_BOX)
     assert out["rgb"].shape == (16, 3) and out["samples"] > 0
     for key in ("rgb", "opacity", "depth"):
         assert torch.isfinite(out[key]).all(), key
@@ -198,7 +200,7 @@ def test_mesh_of_a_pe_field_inside_its_grid(tiny_pe_cfg):
     occupied = torch.zeros(16, 16, 16, dtype=torch.bool)
     occupied[4:12, 4:12, 4:12] = True
     grid = OccupancyGrid(occupied, torch.full((3,), -0.5), torch.full((3,), 0.5))
-    mesh = field_mesh(params, tiny_pe_cfg, grid, resolution=24)
+    mesh = field_mesh(params, tiny_pe_cfg, grid, UNIT_BOX, resolution=24)
     assert len(mesh.faces) > 0 and np.isfinite(mesh.vertices).all()
     # the density outside the grid counts as zero, so the surface stays in the occupied cube
     cell = 1 / 16

@@ -18,12 +18,13 @@ import numpy as np
 from tqdm import tqdm
 
 from model.data.colours import default_caption
-from model.data.cameras import CAMERA_ANGLE_X, DEFAULT_VIEWS, SCENE_AABB, evaluation_poses, training_poses
+from model.data.cameras import CAMERA_ANGLE_X, DEFAULT_VIEWS, evaluation_poses, training_poses
 from model.data.dataset import INDEX_FILE, ObjectEntry, assign_splits, load_index, write_index, write_object
 from model.data.meshes import RenderMesh, normalise
 from model.data.raycast import DEFAULT_SUPERSAMPLE, render_views
 from model.data.variants import material_variants
-from model.rays import focal_from_fov
+from model.nerf.rays import focal_from_fov
+from model.nerf.scene import UNIT_BOX
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +121,7 @@ def build_dataset(out: Path, objects: Iterable[SourceObject], settings: RenderSe
             fields = {**extra, "shape_id": item.id, "variant": k} if settings.variants > 1 else extra
             images, c2w, frame_splits = render_object(variant, settings, desc=object_id)
             write_object(
-                out / object_id, images, c2w, frame_splits, CAMERA_ANGLE_X, SCENE_AABB, variant.to_trimesh(), settings.to_json()
+                out / object_id, images, c2w, frame_splits, CAMERA_ANGLE_X, UNIT_BOX.to_aabb(), variant.to_trimesh(), settings.to_json()
             )
             added.add(object_id)
             entries[object_id] = ObjectEntry(object_id, "train", item.category, caption, fields)

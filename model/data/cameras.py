@@ -7,7 +7,7 @@ Conventions (the scene side of the on-disk format):
 - Cameras sit at ``RADIUS = 2.0`` from the origin and look at it, with a horizontal field of view
   ``CAMERA_ANGLE_X = 2 * atan(0.5)``: the box's bounding sphere (radius ``sqrt(3)/2``) subtends
   25.7 degrees from there, inside the 26.6 degree half-angle, so the whole box is always in view.
-- Matrices are 4x4 camera-to-world in the OpenGL convention of ``model.rays``: the camera looks
+- Matrices are 4x4 camera-to-world in the OpenGL convention of ``model.nerf.rays``: the camera looks
   down its -Z axis, +Y up, +X right. The camera's up vector is the world's +Z projected onto the
   image plane, so horizons stay level.
 - Training poses lie on a Fibonacci lattice of the upper hemisphere: ``V`` points with heights
@@ -29,7 +29,6 @@ import numpy as np
 RADIUS = 2.0
 CAMERA_ANGLE_X = 2.0 * math.atan(0.5)
 DEFAULT_VIEWS = 91
-SCENE_AABB = ((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5))
 
 _GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 # Evaluation rings: (elevation, azimuth offset) in degrees, offsets found by search against the

@@ -4,16 +4,20 @@ Layout (NeRF-synthetic convention, one folder per object)::
 
     DIR/index.json                 {"format": 1, "objects": [{"id", "split", "category", "caption",
                                     "source", ...attribution: "name", "creator", "license", "texture"}]}
-    DIR/<id>/transforms.json       {"camera_angle_x", "w", "h", "aabb": [[x, y, z], [x, y, z]],
+    DIR/<id>/transforms.json       {"camera_angle_x" (or "fl_x", "fl_y", "cx", "cy"), "w", "h",
+                                    "aabb": [[x, y, z], [x, y, z]],
                                     "render": {"views", "resolution", "supersample"} (provenance),
                                     "frames": [{"file_path": "images/train_000.png",
                                                 "transform_matrix": 4x4 camera-to-world,
-                                                "split": "train" | "test"}]}
+                                                "split": "train" | "val" | "test",
+                                                optional per-frame "fl_x", "fl_y", "cx", "cy"}]}
     DIR/<id>/images/*.png          8-bit RGBA, straight alpha, transparent background
     DIR/<id>/mesh.ply              normalised ground-truth mesh in the cameras' coordinates (optional)
 
-Poses use the OpenGL convention of :mod:`model.rays` (camera looks down -Z, +Y up); the world is
-Z-up with every object inside the scene box ``aabb`` (see :mod:`model.data.cameras`).
+Poses use the OpenGL convention of :mod:`model.nerf.rays` (camera looks down -Z, +Y up); the world is
+Z-up with every object inside the scene box ``aabb`` (see :mod:`model.data.cameras`). Intrinsics are
+a pinhole: ``camera_angle_x`` (square pixels, centred principal point) or nerfstudio's ``fl_x``,
+``fl_y``, ``cx``, ``cy`` in pixels, at the top level or per frame.
 
 Object splits (train/val/test) come from a hash of the object id, so they do not depend on the
 order objects are added; see :func:`assign_splits`.
@@ -35,7 +39,8 @@ import numpy as np
 import torch
 from PIL import Image, UnidentifiedImageError
 
-from model.rays import focal_from_fov
+from model.nerf.rays import Intrinsics
+from model.nerf.scene import SceneBox
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +50,7 @@ TRANSFORMS_FILE = "transforms.json"
 MESH_FILE = "mesh.ply"
 IMAGES_DIR = "images"
 OBJECT_SPLITS = ("train", "val", "test")
-FRAME_SPLITS = ("train", "test")
+FRAME_SPLITS = ("train", "val", "test")
 # Fractions of objects in train and val (test gets the rest).
 _SPLIT_FRACTIONS = (0.8, 0.1)
 
@@ -84,19 +89,43 @@ class ObjectEntry:
 class Views:
     """Posed RGBA views of one object.
 
-    ``images [V, H, W, 4]`` float32 in [0, 1] with straight alpha, ``c2w [V, 4, 4]`` float32,
-    ``focal`` in pixels, ``aabb [2, 3]`` float32, ``files`` the image paths relative to the object
-    folder, ``mesh_path`` the ground-truth mesh if present.
+    ``images [V, H, W, 4]`` float32 in [0, 1] with straight alpha (opaque for images without
+    alpha), ``c2w [V, 4, 4]`` float32, ``cameras`` one pinhole per view (all of one image size),
+    ``scene`` the object's scene box, ``files`` the image paths relative to the object folder,
+    ``mesh_path`` the ground-truth mesh if present.
     """
 
     images: torch.Tensor
     c2w: torch.Tensor
-    focal: float
-    width: int
-    height: int
-    aabb: torch.Tensor
+    cameras: list[Intrinsics]
+    scene: SceneBox
     files: list[str]
     mesh_path: Path | None
+
+    @property
+    def width(self) -> int:
+        return self.cameras[0].width
+
+    @property
+    def height(self) -> int:
+        return self.cameras[0].height
+
+    @property
+    def camera(self) -> Intrinsics:
+        """The one camera every view shares; an error when views differ in intrinsics."""
+        if any(c != self.cameras[0] for c in self.cameras[1:]):
+            raise DatasetError("these views have different intrinsics; use views.cameras per view")
+        return self.cameras[0]
+
+    @property
+    def has_alpha(self) -> bool:
+        """Whether any image has a transparent pixel: then alpha gives masks (and a visual hull)."""
+        return bool((self.images[..., 3] < 1.0).any())
+
+    def subset(self, index) -> "Views":
+        """The views at ``index`` (a slice or a list of view numbers)."""
+        picks = list(range(len(self.files)))[index] if isinstance(index, slice) else list(index)
+        return Views(self.images[picks], self.c2w[picks], [self.cameras[i] for i in picks], self.scene, [self.files[i] for i in picks], self.mesh_path)
 
 
 class Index(list):
@@ -187,16 +216,19 @@ def write_object(
     images: np.ndarray,
     c2w: np.ndarray,
     frame_splits: Sequence[str],
-    camera_angle_x: float,
+    camera: float | Sequence[Intrinsics],
     aabb: Sequence[Sequence[float]],
     mesh=None,
     render: dict | None = None,
+    extra: dict | None = None,
 ) -> None:
     """Write one object folder: PNGs, ``transforms.json`` (written last) and optionally ``mesh.ply``.
 
     ``images`` is 8-bit RGBA ``[V, H, W, 4]``, ``c2w`` ``[V, 4, 4]``, ``frame_splits`` one of
-    ``"train"``/``"test"`` per view, ``mesh`` a trimesh mesh or ``None``, ``render`` the render
-    settings, kept in ``transforms.json`` for provenance.
+    ``FRAME_SPLITS`` per view, ``camera`` a horizontal field of view in radians (centred, square
+    pixels) or one :class:`Intrinsics` per view (written once when all agree, else per frame),
+    ``mesh`` a trimesh mesh or ``None``, ``render`` the render settings and ``extra`` any other
+    provenance, both kept in ``transforms.json``.
     """
     validate_views(images, c2w)
     if images.dtype != np.uint8 or images.shape[-1] != 4:
@@ -214,12 +246,26 @@ def write_object(
         frames.append({"file_path": name, "split": split, "transform_matrix": np.asarray(pose, dtype=float).tolist()})
     if mesh is not None:
         mesh.export(folder / MESH_FILE)
+    if isinstance(camera, (int, float)):
+        intrinsics = {"camera_angle_x": float(camera)}
+    else:
+        cameras = list(camera)
+        if len(cameras) != len(frames):
+            raise ValueError(f"{len(cameras)} cameras for {len(frames)} images; give one per image")
+        pinhole = [{"fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy} for c in cameras]
+        if all(p == pinhole[0] for p in pinhole):
+            intrinsics = pinhole[0]
+        else:
+            intrinsics = {}
+            for frame, values in zip(frames, pinhole):
+                frame.update(values)
     transforms = {
-        "camera_angle_x": camera_angle_x,
+        **intrinsics,
         "w": int(images.shape[2]),
         "h": int(images.shape[1]),
         "aabb": [list(map(float, corner)) for corner in aabb],
         **({"render": render} if render else {}),
+        **(extra or {}),
         "frames": frames,
     }
     (folder / TRANSFORMS_FILE).write_text(json.dumps(transforms, indent=1))
@@ -320,7 +366,40 @@ def _aabb(transforms_data: dict, transforms: Path) -> np.ndarray:
         raise DatasetError(f"{transforms}: 'aabb' is not numeric ({error})") from error
     if aabb.shape != (2, 3) or not np.isfinite(aabb).all() or not (aabb[0] < aabb[1]).all():
         raise DatasetError(f"{transforms}: 'aabb' must be [[xmin,ymin,zmin],[xmax,ymax,zmax]] with min < max")
-    return aabb
+    return SceneBox.from_aabb(aabb)
+
+
+def _number(source: dict, key: str, where: str) -> float | None:
+    value = source.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise DatasetError(f"{where}: {key!r} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def frame_intrinsics(data: dict, frame: dict, width: int, height: int, where: str) -> Intrinsics:
+    """The pinhole of one frame: its own ``fl_x``/``fl_y``/``cx``/``cy`` over the file's, else
+    ``camera_angle_x`` (and ``camera_angle_y`` for non-square pixels) with a centred principal point."""
+
+    def pick(key: str) -> float | None:
+        value = _number(frame, key, where)
+        return value if value is not None else _number(data, key, where)
+
+    fx, fy = pick("fl_x"), pick("fl_y")
+    if fx is None:
+        angle = pick("camera_angle_x")
+        if angle is None or not 0.0 < angle < math.pi:
+            raise DatasetError(f"{where}: give 'camera_angle_x' (horizontal field of view in radians, in (0, pi)) or 'fl_x' in pixels; got {angle!r}")
+        fx = 0.5 * width / math.tan(0.5 * angle)
+    if fy is None:
+        angle_y = pick("camera_angle_y")
+        fy = 0.5 * height / math.tan(0.5 * angle_y) if angle_y is not None else fx
+    cx, cy = pick("cx"), pick("cy")
+    try:
+        return Intrinsics(width, height, fx, fy, 0.5 * width if cx is None else cx, 0.5 * height if cy is None else cy)
+    except ValueError as error:
+        raise DatasetError(f"{where}: {error}") from error
 
 
 def load_views(folder: Path, split: str | None = "train") -> Views:
@@ -331,9 +410,6 @@ def load_views(folder: Path, split: str | None = "train") -> Views:
     transforms = folder / TRANSFORMS_FILE
     hint = "the object folder is incomplete: re-render it"
     data = _read_json(transforms, hint)
-    angle = data.get("camera_angle_x")
-    if not isinstance(angle, (int, float)) or not math.isfinite(angle) or not 0.0 < angle < math.pi:
-        raise DatasetError(f"{transforms}: 'camera_angle_x' must be a horizontal field of view in radians, got {angle!r}")
     frames = data.get("frames")
     if not isinstance(frames, list) or not frames:
         raise DatasetError(f"{transforms}: 'frames' must be a non-empty list; {hint}")
@@ -341,7 +417,7 @@ def load_views(folder: Path, split: str | None = "train") -> Views:
     chosen = [(n, f) for n, f in enumerate(frames) if isinstance(f, dict) and (split is None or f.get("split", "train") == split)]
     if not chosen:
         raise DatasetError(f"{transforms} has no frames with split {split!r}; {hint}")
-    aabb = _aabb(data, transforms)
+    scene = _aabb(data, transforms)
     files = [_frame_file(folder, frame, transforms) for _, frame in chosen]
     poses = np.stack([_frame_pose(frame, transforms, number) for number, frame in chosen])
     images = [_read_image(folder / name, transforms) for name in files]
@@ -358,16 +434,8 @@ def load_views(folder: Path, split: str | None = "train") -> Views:
     image_tensor = torch.from_numpy(np.stack(images))
     c2w = torch.from_numpy(poses.astype(np.float32))
     validate_views(image_tensor, c2w)
+    cameras = [frame_intrinsics(data, frame, int(expected[1]), int(expected[0]), f"{transforms} frame {number}") for number, frame in chosen]
     mesh = folder / MESH_FILE
     log.debug("loaded %d %s views of %s at %dx%d", len(files), split or "all", folder, expected[1], expected[0])
-    return Views(
-        images=image_tensor,
-        c2w=c2w,
-        focal=focal_from_fov(int(expected[1]), float(angle)),
-        width=int(expected[1]),
-        height=int(expected[0]),
-        aabb=torch.from_numpy(aabb.astype(np.float32)),
-        files=files,
-        mesh_path=mesh if mesh.is_file() else None,
-    )
+    return Views(images=image_tensor, c2w=c2w, cameras=cameras, scene=scene, files=files, mesh_path=mesh if mesh.is_file() else None)
 

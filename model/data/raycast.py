@@ -1,6 +1,6 @@
 """Ground-truth RGBA renders of a :class:`~model.data.meshes.RenderMesh` by CPU ray casting.
 
-Rays come from :func:`model.rays.pixel_rays` (the same cameras a NeRF is trained with) and are
+Rays come from :func:`model.nerf.rays.pixel_rays` (the same cameras a NeRF is trained with) and are
 intersected with **embreex** (Intel Embree's Python binding, the ray caster trimesh itself uses:
 several million rays per second on one core here), which returns the hit triangle and its
 barycentric coordinates directly.
@@ -25,7 +25,7 @@ from embreex.mesh_construction import TriangleMesh
 from tqdm import tqdm
 
 from model.data.meshes import RenderMesh
-from model.rays import pixel_rays
+from model.nerf.rays import Intrinsics, pixel_rays
 
 DEFAULT_SUPERSAMPLE = 2
 AMBIENT = 0.30
@@ -143,7 +143,7 @@ def render_views(
     s = int(supersample)
     # Rays of an identity camera, turned by each pose below: the same rays pixel_rays gives for
     # that pose, built once and rotated into reused buffers (fresh memory is slow to fault in).
-    _, local = pixel_rays(torch.eye(4, dtype=torch.float64), width * s, height * s, focal * s)
+    _, local = pixel_rays(torch.eye(4, dtype=torch.float64), Intrinsics.centred(width * s, height * s, focal * s))
     local = local.numpy().astype(np.float32)
     directions, origins = np.empty_like(local), np.empty_like(local)
     views = np.zeros((len(c2w), height, width, 4), dtype=np.uint8)

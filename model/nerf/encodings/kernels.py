@@ -13,7 +13,7 @@ directly without running ninja. Loading a library marks it used (its mtime); aft
 build, other builds of the same extension unused for ``STALE_AFTER_DAYS`` are deleted, so
 edits and upgrades do not pile up binaries while a cache shared by other machines keeps theirs.
 
-``python -m model.kernels`` builds everything ahead of time.
+``python -m model.nerf.encodings.kernels`` builds everything ahead of time.
 """
 
 from __future__ import annotations
@@ -161,7 +161,7 @@ def hashgrid_ops():
 
 
 def main() -> None:
-    """Build every extension ahead of time (``python -m model.kernels``)."""
+    """Build every extension ahead of time (``python -m model.nerf.encodings.kernels``)."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     hashgrid_ops()
     log.info("C++ extensions ready in %s", cache_root())

@@ -16,10 +16,10 @@ import trimesh
 from tqdm import tqdm
 
 from model.data.dataset import DatasetError, ObjectEntry, load_index, load_views
-from model.fit import scene_box
-from model.metrics import sample_surface
-from model.occupancy import OccupancyGrid, carve_from_masks, dilate
-from model.rays import camera_directions
+from model.nerf.mesh import sample_surface
+from model.nerf.occupancy import OccupancyGrid, carve_from_masks, dilate
+from model.nerf.rays import Intrinsics, camera_directions
+from model.nerf.scene import SceneBox
 
 log = logging.getLogger(__name__)
 
@@ -39,15 +39,23 @@ class Instance:
 
 @dataclass
 class CategoryData:
-    """Training views of every instance: ``images [N, V, H, W, 4]`` uint8, ``c2w [N, V, 4, 4]``."""
+    """Training views of every instance: ``images [N, V, H, W, 4]`` uint8, ``c2w [N, V, 4, 4]``,
+    one ``camera`` and one ``scene`` box shared by the whole category."""
 
     root: Path
     instances: list[Instance]
     images: torch.Tensor
     c2w: torch.Tensor
-    focal: float
-    width: int
-    height: int
+    camera: Intrinsics
+    scene: SceneBox
+
+    @property
+    def width(self) -> int:
+        return self.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.camera.height
 
     @property
     def shape_index(self) -> list[int]:
@@ -68,7 +76,7 @@ class CategoryData:
         return c2w[:, :3, 3], directions, rgba
 
     def camera_directions(self, device=None) -> torch.Tensor:
-        return camera_directions(self.width, self.height, self.focal, device=device).reshape(-1, 3)
+        return camera_directions(self.camera, device=device).reshape(-1, 3)
 
 
 def select_instances(root: Path, split: str = "train", limit: int | None = None) -> list[ObjectEntry]:
@@ -80,18 +88,20 @@ def select_instances(root: Path, split: str = "train", limit: int | None = None)
 
 
 def load_category(root: Path, split: str = "train", limit: int | None = None, progress: bool = True) -> CategoryData:
-    """Every instance of one object split with its training views (all must share size and focal)."""
+    """Every instance of one object split with its training views (all share one camera and scene box)."""
     root = Path(root)
     entries = select_instances(root, split, limit)
     shape_ids: dict[str, int] = {}
     instances, images, poses = [], [], []
-    focal = width = height = None
+    camera = scene = None
     for entry in tqdm(entries, desc="loading views", unit="object", disable=not progress):
         views = load_views(root / entry.id, split="train")
-        if focal is None:
-            focal, width, height = views.focal, views.width, views.height
-        elif (views.width, views.height) != (width, height) or abs(views.focal - focal) > 1e-6 * focal:
-            raise DatasetError(f"{entry.id} has {views.width}x{views.height} views (focal {views.focal:.2f}); every object of a category must share one camera, {width}x{height} focal {focal:.2f}")
+        if camera is None:
+            camera, scene = views.camera, views.scene
+        elif views.camera != camera:
+            raise DatasetError(f"{entry.id} has camera {views.camera}; every object of a category must share one camera, {camera}")
+        elif views.scene != scene:
+            raise DatasetError(f"{entry.id} has scene box {views.scene.to_aabb()}; every object of a category must share one, {scene.to_aabb()}")
         if images and views.images.shape[0] != images[0].shape[0]:
             raise DatasetError(f"{entry.id} has {views.images.shape[0]} training views, others {images[0].shape[0]}; render all objects with the same --views")
         rgba = views.images if views.images.shape[-1] == 4 else torch.cat([views.images, torch.ones_like(views.images[..., :1])], -1)
@@ -101,7 +111,7 @@ def load_category(root: Path, split: str = "train", limit: int | None = None, pr
         index = shape_ids.setdefault(shape_id, len(shape_ids))
         instances.append(Instance(entry.id, entry.caption, shape_id, index))
     log.info("loaded %d instances of %d shapes from %s", len(instances), len(shape_ids), root)
-    return CategoryData(root, instances, torch.stack(images), torch.stack(poses), float(focal), int(width), int(height))
+    return CategoryData(root, instances, torch.stack(images), torch.stack(poses), camera, scene)
 
 
 OCCUPANCY_SOURCES = ("hull", "mesh", "box")
@@ -118,7 +128,6 @@ def shape_grids(data: CategoryData, resolution: int = 64, progress: bool = True,
     """
     if source not in OCCUPANCY_SOURCES:
         raise ValueError(f"unknown occupancy source {source!r}; choose one of {OCCUPANCY_SOURCES}")
-    lo, hi = scene_box("cpu")
     first = {}
     for n, inst in enumerate(data.instances):
         first.setdefault(inst.shape_index, n)
@@ -128,26 +137,26 @@ def shape_grids(data: CategoryData, resolution: int = 64, progress: bool = True,
         if source == "box":
             grids.append(torch.ones(resolution, resolution, resolution, dtype=torch.bool))
         elif source == "mesh":
-            grids.append(surface_cells(data.root / data.instances[n].id / "mesh.ply", resolution, lo, hi))
+            grids.append(surface_cells(data.root / data.instances[n].id / "mesh.ply", resolution, data.scene))
         else:
             masks = data.images[n, ..., 3] > 0
-            grids.append(carve_from_masks(data.c2w[n], masks, data.focal, lo, hi, resolution=resolution).occupied)
+            grids.append(carve_from_masks(data.c2w[n], masks, data.camera, data.scene, resolution=resolution).occupied)
     return torch.stack(grids)
 
 
-def surface_cells(mesh_path: Path, resolution: int, lo: torch.Tensor, hi: torch.Tensor, points: int = 200_000) -> torch.Tensor:
+def surface_cells(mesh_path: Path, resolution: int, scene: SceneBox, points: int = 200_000) -> torch.Tensor:
     """Cells within one cell of a mesh's surface: dense surface samples, marked, then dilated."""
     if not mesh_path.is_file():
         raise DatasetError(f"{mesh_path} is missing: occupancy from meshes needs each object's ground-truth mesh; use the hull instead")
     samples = torch.from_numpy(sample_surface(trimesh.load(mesh_path, force="mesh", process=False), points)).float()
-    cells = ((samples - lo) / (hi - lo) * resolution).floor().long().clamp_(0, resolution - 1)
+    cells = (scene.to_unit(samples) * resolution).floor().long().clamp_(0, resolution - 1)
     occupied = torch.zeros(resolution, resolution, resolution, dtype=torch.bool)
     occupied[cells[:, 0], cells[:, 1], cells[:, 2]] = True
     return dilate(occupied, 1)
 
 
-def grid_of(occupied: torch.Tensor, device=None) -> OccupancyGrid:
-    lo, hi = scene_box(device)
+def grid_of(occupied: torch.Tensor, scene: SceneBox, device=None) -> OccupancyGrid:
+    lo, hi = scene.tensors(device)
     return OccupancyGrid(occupied.to(device), lo, hi)
 
 
@@ -157,9 +166,8 @@ def free_space_grids(grids: torch.Tensor, margin: int = 1) -> torch.Tensor:
     return torch.stack([dilate(grid, margin) for grid in grids]) if len(grids) else grids
 
 
-def free_space_points(grown: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
+def free_space_points(grown: torch.Tensor, scene: SceneBox, count: int, generator: torch.Generator) -> torch.Tensor:
     """Up to ``count`` uniform points of the scene box in cells empty in ``grown`` (a hull grown by
     a margin, see ``free_space_grids``); world coordinates ``[M, 3]``."""
-    lo, hi = scene_box(grown.device)
-    points = lo + torch.rand(count, 3, generator=generator, device=grown.device) * (hi - lo)
-    return points[~OccupancyGrid(grown, lo, hi).lookup(points)]
+    points = scene.from_unit(torch.rand(count, 3, generator=generator, device=grown.device))
+    return points[~grid_of(grown, scene, grown.device).lookup(points)]

@@ -25,15 +25,15 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from model.field import FieldConfig, FieldParams
-from model.fields import field_config_from_dict
+from model.nerf import config
+from model.nerf.fields import Field, FieldConfig, FieldParams, PEFieldConfig
 
 
 @dataclass
 class HyperNetConfig:
     """Sizes of the codes and heads, and the field the heads emit."""
 
-    field: FieldConfig = field(default_factory=FieldConfig)
+    field: Field = field(default_factory=FieldConfig)
     shape_code_dim: int = 128
     color_code_dim: int = 128
     head_hidden: int = 256
@@ -42,28 +42,8 @@ class HyperNetConfig:
     final_init_scale: float = 0.1
     code_init_std: float = 0.1
 
-    def to_dict(self) -> dict:
-        return {
-            "field": self.field.to_dict(),
-            "shape_code_dim": self.shape_code_dim,
-            "color_code_dim": self.color_code_dim,
-            "head_hidden": self.head_hidden,
-            "head_layers": self.head_layers,
-            "table_rank": self.table_rank,
-            "final_init_scale": self.final_init_scale,
-            "code_init_std": self.code_init_std,
-        }
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "HyperNetConfig":
-        data = dict(data)
-        data["field"] = field_config_from_dict(data.get("field", {}))
-        return cls(**data)
-
 
 def _presets() -> dict[str, HyperNetConfig]:
-    from model.pe_field import PEFieldConfig
-
     return {
         # the official code's sizes: codes 512 + 512, every head 3 hidden layers of 512
         "paper": HyperNetConfig(shape_code_dim=512, color_code_dim=512, head_hidden=512, head_layers=3, table_rank=None),
@@ -73,7 +53,8 @@ def _presets() -> dict[str, HyperNetConfig]:
         "cpu-no-mrhe": HyperNetConfig(field=PEFieldConfig(), table_rank=None),
         # for tests: a tiny field and tiny heads
         "tiny": HyperNetConfig(
-            field=FieldConfig.from_dict(
+            field=config.from_dict(
+                FieldConfig,
                 {"encoding": {"levels": 4, "log2_table_size": 8, "features": 2, "base_resolution": 4, "finest_resolution": 32}, "hidden": 16, "color_hidden": 16}
             ),
             shape_code_dim=16,

@@ -11,16 +11,15 @@ What it is
 
 Why it exists
     HyP-NeRF's Table 4 ablates the multi-resolution hash encoding (MRHE): the hypernetwork then
-    predicts this field instead of the hash-grid one in ``model.field``. Because the hypernetwork
-    emits every weight, the field is functional exactly like ``model.field.FieldConfig``: all
+    predicts this field instead of the hash-grid one in ``model.nerf.fields.hashgrid``. Because the hypernetwork
+    emits every weight, the field is functional exactly like ``model.nerf.fields.hashgrid.FieldConfig``: all
     weights are arguments (a dict of tensors with a leading object dimension ``B``) and the config
-    offers the same methods (``param_shapes``, ``shape_param_names`` / ``color_param_names``,
-    ``init_params``, ``density``, ``view_term``, ``color_from_view_term``, ``to_dict`` /
-    ``from_dict``), so the renderer, the fits and the hypernetwork take either kind.
+    implements the same field protocol (``model.nerf.fields.protocol.Field``), so the renderer,
+    the fits and the hypernetwork take either kind.
 
 Differences from NeRF's MLP
     * Layers are bias-free, as in the hash-grid field: the hypernetwork emits weight matrices only.
-    * Density goes through the truncated exponential of ``model.field`` (as the hash-grid field)
+    * Density goes through the truncated exponential of ``model.nerf.fields.hashgrid`` (as the hash-grid field)
       instead of NeRF's ReLU, so both kinds of the ablation share the density parameterisation.
     * Points arrive in [0,1]^3 (the renderer's unit box) and are mapped to [-1,1]^3 before the
       encoding, so the lowest frequency ``sin(pi x)`` spans one period over the box.
@@ -36,33 +35,17 @@ Parameter matching
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
 
-from model.field import FieldParams, truncated_exp
+from model.nerf.encodings.positional import encoded_dim, positional_encoding
+from model.nerf.fields.hashgrid import truncated_exp
+from model.nerf.fields.protocol import FieldParams
 
 # Scale of the Kaiming-uniform density column at initialisation (see ``PEFieldConfig.init_params``).
 _DENSITY_INIT_SCALE = 0.25
-
-
-def positional_encoding(x: torch.Tensor, frequencies: int) -> torch.Tensor:
-    """NeRF's encoding ``[x, sin(2^0 pi x), cos(2^0 pi x), ..., sin(2^{F-1} pi x), cos(2^{F-1} pi x)]``.
-
-    ``x [..., D]`` -> ``[..., D * (1 + 2 F)]``; the sines and cosines of each frequency are grouped
-    (all ``D`` sines, then all ``D`` cosines), as in NeRF's ``embed_fn``.
-    """
-    if frequencies <= 0:
-        return x
-    scales = (2.0 ** torch.arange(frequencies, device=x.device, dtype=x.dtype)) * math.pi  # [F]
-    angles = x[..., None, :] * scales[:, None]  # [..., F, D]
-    parts = torch.stack([torch.sin(angles), torch.cos(angles)], dim=-2)  # [..., F, 2, D]
-    return torch.cat([x, parts.flatten(-3)], dim=-1)
-
-
-def encoded_dim(dim: int, frequencies: int) -> int:
-    return dim * (1 + 2 * max(frequencies, 0))
 
 
 def _compute_dtype(*tensors: torch.Tensor) -> torch.dtype:
@@ -130,7 +113,7 @@ class PEFieldConfig:
         return sum(math.prod(shape) for shape in self.param_shapes().values())
 
     def init_params(self, batch: int = 1, *, generator=None, device=None) -> FieldParams:
-        """Fresh per-object weights, Kaiming-uniform (bound ``sqrt(6 / fan_in)``) like ``model.field``."""
+        """Fresh per-object weights, Kaiming-uniform (bound ``sqrt(6 / fan_in)``) like ``model.nerf.fields.hashgrid``."""
         params = {}
         for name, (fan_in, fan_out) in self.param_shapes().items():
             bound = math.sqrt(6.0 / fan_in)
@@ -184,10 +167,4 @@ class PEFieldConfig:
         """RGB in [0,1] ``[B, N, 3]`` from geometry features and unit view directions ``[B, N, 3]``."""
         return self.color_from_view_term(params, geo, self.view_term(params, directions))
 
-    def to_dict(self) -> dict:
-        return {"kind": self.kind, **asdict(self)}
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "PEFieldConfig":
-        return cls(**{k: v for k, v in data.items() if k != "kind"})
 

@@ -22,7 +22,7 @@ Precise semantics (shared by both implementations below):
   gradcheck). Gradients reach the inputs in their own dtype.
 
 Two implementations: the fused C++/OpenMP CPU kernel (``model/csrc/hashgrid.cpp``, built by
-``model.kernels``), used for CPU tensors; and a pure-PyTorch reference, used on CUDA and other
+``model.nerf.encodings.kernels``), used for CPU tensors; and a pure-PyTorch reference, used on CUDA and other
 devices, when the kernel cannot be built, when ``HYPNERF_PURE_TORCH=1``, and as the golden
 reference in the tests. The kernel path supports first-order gradients only (pose refinement and
 training need no more); the reference path is differentiable to any order.
@@ -34,11 +34,11 @@ import functools
 import logging
 import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 
-from model import kernels
+from model.nerf.encodings import kernels
 
 log = logging.getLogger(__name__)
 
@@ -101,13 +101,6 @@ class HashGridConfig:
     def dense(self) -> tuple[bool, ...]:
         """Whether each level is stored densely (its (res+1)^3 vertices fit the table)."""
         return tuple((r + 1) ** 3 <= self.table_size for r in self.resolutions)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict) -> HashGridConfig:
-        return cls(**data)
 
 
 def init_tables(

@@ -7,9 +7,11 @@ ground-truth views.
 The occupancy grid is part of a fitted NeRF, as in InstantNGP: its empty cells hold no density.
 ``dense`` is the reference renderer of that model: samples spread over the whole scene box, the
 field evaluated at every one of them (density then zeroed in empty cells), no early termination,
-colour at every sample. The shortcut modes must match its PSNR while skipping work;
-``dense-no-grid`` drops the grid from the model to show what it removes (haze where no training
-ray ever looked).
+colour at every sample. Each further mode adds one shortcut, so the table separates them:
+``dense-tight`` marches the grid's tight box (same sample count, finer steps), ``occupancy`` also
+skips empty cells, ``+termination`` stops rays once opaque, ``fast`` also shades only samples
+whose weight matters. ``dense-no-grid`` drops the grid from the model to show what it removes
+(haze where no training ray ever looked). Quality is full-image and foreground PSNR.
 """
 
 from __future__ import annotations
@@ -20,10 +22,11 @@ from pathlib import Path
 import torch
 
 from model.data.dataset import load_views
-from model.evaluate import composite_over, render_views
-from model.fit import load_fit
-from model.metrics import psnr
-from model.renderer import DENSE, RenderConfig
+from model.nerf import config
+from model.eval.field import render_views
+from model.eval.metrics import image_quality
+from model.nerf.renderer import DENSE, DENSE_TIGHT, RenderConfig
+from model.optimize.fit import load_fit
 
 FAST = RenderConfig()
 
@@ -32,7 +35,8 @@ MODES: dict[str, tuple[RenderConfig, bool]] = {
     "dense": (DENSE, True),
     "dense-64": (replace(DENSE, samples_per_ray=64), True),
     "dense-no-grid": (DENSE, False),
-    "occupancy": (replace(DENSE, use_occupancy=True), True),
+    "dense-tight": (DENSE_TIGHT, True),
+    "occupancy": (replace(DENSE_TIGHT, skip_empty=True), True),
     "occupancy+termination": (replace(FAST, color_weight_threshold=0.0), True),
     "fast": (FAST, True),
     "fast-64": (replace(FAST, samples_per_ray=64), True),
@@ -42,24 +46,23 @@ MODES: dict[str, tuple[RenderConfig, bool]] = {
 
 
 def run_render_bench(run_dir: Path, *, repeats: int = 3, views: int = 4) -> dict:
-    params, grid, cfg, meta = load_fit(run_dir)
-    test = load_views(Path(meta["data"]) / meta["object"], split="test")
-    test = replace(test, images=test.images[:views], c2w=test.c2w[:views], files=test.files[:views])
-    target = composite_over(test.images)
+    params, grid, scene, cfg, meta = load_fit(run_dir)
+    test = load_views(Path(meta["data"]) / meta["object"], split="test").subset(slice(0, views))
     runs = []
     for mode, (render_cfg, with_grid) in MODES.items():
         times = []
         for _ in range(repeats):
-            images, ms, samples_per_ray = render_views(params, cfg.field, test, render_cfg, grid if with_grid else None)
+            images, opacity, ms, samples_per_ray = render_views(params, cfg.field, test, render_cfg, grid if with_grid else None, scene)
             times.append(ms)
+        quality = image_quality(images, test.images, opacity, render_cfg.background)
         runs.append(
             {
                 "mode": mode,
                 "ms": float(torch.tensor(times).median()),
-                "psnr": sum(psnr(a, b) for a, b in zip(images, target)) / len(images),
+                **{k: quality[k] for k in ("psnr", "psnr_fg", "floor_psnr", "floor_psnr_fg")},
                 "samples_per_ray": samples_per_ray,
                 "occupancy_grid": with_grid,
-                "config": render_cfg.to_dict(),
+                "config": config.to_dict(render_cfg),
             }
         )
     dense = runs[0]

@@ -10,7 +10,7 @@ Space outside the hull is never seen by a training ray, so a free-space loss pus
 of random points there to zero; the generated NeRFs then mark their own empty space and a grid
 derived from their density (as the service builds one) matches the object.
 
-Data parallel with ``torch.distributed``: ``torchrun --nproc_per_node=2 -m model.train ...`` runs
+Data parallel with ``torch.distributed``: ``torchrun --nproc_per_node=2 -m model.cli train ...`` runs
 one process per core (gloo on CPU, NCCL on GPUs), each rendering different instances; gradients
 are averaged by ``DistributedDataParallel``. Randomness of a step depends only on (seed, step,
 rank), so a resumed run continues exactly as an uninterrupted one would.
@@ -18,37 +18,33 @@ rank), so a resumed run continues exactly as an uninterrupted one would.
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
-import math
 import os
-import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 import torch.distributed as dist
-from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from model.category import OCCUPANCY_SOURCES, CategoryData, free_space_grids, free_space_points, grid_of, load_category, shape_grids
+from model.data.category import CategoryData, free_space_grids, free_space_points, grid_of, load_category, shape_grids
 from model.data.dataset import load_views
-from model.device import default_device
-from model.evaluate import composite_over
-from model.field import FieldParams, select
-from model.fit import scene_box, unit_density_fn
-from model.hypernet import HyperNetConfig, HyperNetwork, code_penalty, preset
-from model.metrics import psnr
-from model.occupancy import OccupancyGrid, grid_from_density
-from model.renderer import RenderConfig, render_image, render_rays
+from model.eval.metrics import image_quality
+from model.nerf import config
+from model.nerf.device import default_device
+from model.nerf.fields import FieldParams
+from model.nerf.fields.hashgrid import select
+from model.nerf.renderer import RenderConfig, render_image
+from model.optimize.step import RayBatch, adam_with_decay, mse_to_psnr, photometric_loss
+from model.prior.codes import generated_grid
+from model.prior.hypernet import HyperNetConfig, HyperNetwork, code_penalty
+from model.prior.io import export_prior
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT = "checkpoint.pt"
-PRIOR_WEIGHTS = "hypernet.safetensors"
-PRIOR_META = "prior.json"
 
 
 @dataclass
@@ -64,26 +60,13 @@ class TrainConfig:
     free_space_weight: float = 0.1
     free_space_points: int = 1024
     grid_resolution: int = 64
-    occupancy: str = "hull"  # training occupancy: hull, mesh or box (model.category.shape_grids)
+    occupancy: str = "hull"  # training occupancy: hull, mesh or box (model.data.category.shape_grids)
     render: RenderConfig = field(default_factory=lambda: RenderConfig(termination_threshold=0.0))
     validate_every: int = 500
     validation_instances: int = 4
     checkpoint_every: int = 500
     log_every: int = 50
     seed: int = 0
-
-    def to_dict(self) -> dict:
-        out = asdict(self)
-        out["render"] = self.render.to_dict()
-        return out
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "TrainConfig":
-        data = dict(data)
-        data["render"] = RenderConfig.from_dict(data.get("render", {}))
-        if "betas" in data:
-            data["betas"] = tuple(data["betas"])
-        return cls(**data)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -145,20 +128,18 @@ def instance_loss(
 ) -> tuple[torch.Tensor, dict]:
     """Photometric loss on ``rays`` random training pixels of one instance, plus the free-space term."""
     device = directions_cam.device
-    pixels = torch.randint(0, data.images.shape[1] * data.width * data.height, (rays,), generator=generator, device=device)
+    scene = data.scene
+    pixels = torch.randint(0, data.images.shape[1] * data.camera.pixels, (rays,), generator=generator, device=device)
     origins, directions, rgba = data.rays(instance, pixels.cpu(), directions_cam.cpu())
-    origins, directions, rgba = origins.to(device), directions.to(device), rgba.to(device)
-    background = torch.rand(rays, 3, generator=generator, device=device)
-    target = rgba[:, :3] * rgba[:, 3:] + background * (1 - rgba[:, 3:])
-    grid = grid_of(occupied, device)
-    out = render_rays(params, field_cfg, origins, directions, cfg.render, grid=grid, background=background, jitter=True, generator=generator)
-    mse = torch.mean((out["rgb"] - target) ** 2)
+    batch = RayBatch(origins.to(device), directions.to(device), rgba.to(device))
+    mse, out = photometric_loss(
+        params, field_cfg, batch, cfg.render, scene=scene, grid=grid_of(occupied, scene, device), random_background=True, generator=generator
+    )
     loss = mse
-    free = free_space_points(free_grid, cfg.free_space_points, generator)
+    free = free_space_points(free_grid, scene, cfg.free_space_points, generator)
     if cfg.free_space_weight > 0 and free.shape[0]:
-        lo, hi = scene_box(device)
-        sigma = field_cfg.density(params, ((free - lo) / (hi - lo))[None])[0][0]
-        step_length = float((hi - lo).max()) / cfg.render.samples_per_ray
+        sigma = field_cfg.density(params, scene.to_unit(free)[None])[0][0]
+        step_length = 1.0 / cfg.render.samples_per_ray  # a render step across the unit cube
         loss = loss + cfg.free_space_weight * torch.mean(-torch.expm1(-sigma * step_length))
     return loss, {"mse": mse.detach(), "samples": out["samples"]}
 
@@ -168,24 +149,18 @@ def instance_loss(
 
 
 @torch.no_grad()
-def generated_grid(params: FieldParams, field_cfg, device, resolution: int = 64, samples_per_cell: int = 2) -> OccupancyGrid:
-    """The occupancy grid of a generated NeRF, from its own density (what the service caches)."""
-    lo, hi = scene_box(device)
-    return grid_from_density(unit_density_fn(params, field_cfg, device), lo, hi, resolution=resolution, samples_per_cell=samples_per_cell)
-
-
-@torch.no_grad()
-def validate(net: HyperNetwork, views: dict[int, tuple], device) -> float:
-    """Mean PSNR of one held-out view per validation instance, each NeRF with its generated grid."""
+def validate(net: HyperNetwork, data: CategoryData, views: dict[int, tuple], device) -> dict[str, float]:
+    """Mean full-image and foreground PSNR of one held-out view per validation instance, each
+    NeRF rendered with its generated grid, beside the blank-image floor of the same views."""
     net.eval()
-    scores = []
-    for instance, (c2w, target, width, height, focal) in views.items():
+    rows = []
+    for instance, (c2w, target_rgba, camera) in views.items():
         params = net(torch.tensor([instance], device=device))
-        grid = generated_grid(params, net.cfg.field, device)
-        out = render_image(params, net.cfg.field, c2w.to(device), width, height, focal, RenderConfig(), grid=grid)
-        scores.append(psnr(out["rgb"].cpu(), target))
+        grid = generated_grid(params, net.cfg.field, data.scene)
+        out = render_image(params, net.cfg.field, c2w.to(device), camera, RenderConfig(), scene=data.scene, grid=grid)
+        rows.append(image_quality(out["rgb"].cpu()[None], target_rgba[None], out["opacity"].cpu()[None]))
     net.train()
-    return sum(scores) / len(scores)
+    return {key: sum(r[key] for r in rows) / len(rows) for key in ("psnr", "psnr_fg", "floor_psnr", "floor_psnr_fg")}
 
 
 def validation_views(data: CategoryData, count: int) -> dict[int, tuple]:
@@ -194,7 +169,7 @@ def validation_views(data: CategoryData, count: int) -> dict[int, tuple]:
     out = {}
     for n in picks:
         test = load_views(data.root / data.instances[n].id, split="test")
-        out[n] = (test.c2w[0], composite_over(test.images[0]), test.width, test.height, test.focal)
+        out[n] = (test.c2w[0], test.images[0], test.cameras[0])
     return out
 
 
@@ -206,37 +181,6 @@ def save_checkpoint(run: Path, state: dict) -> None:
     tmp = run / (CHECKPOINT + ".tmp")
     torch.save(state, tmp)
     os.replace(tmp, run / CHECKPOINT)
-
-
-def export_prior(run: Path, net: HyperNetwork, data: CategoryData, tcfg: TrainConfig, extra: dict, dtype=torch.float16) -> Path:
-    """The trained prior: weights (``dtype``, half by default to keep bundles small) and its metadata."""
-    tensors = {k: v.detach().to(dtype if v.is_floating_point() else v.dtype).contiguous().cpu() for k, v in net.state_dict().items()}
-    save_file(tensors, str(run / PRIOR_WEIGHTS))
-    meta = {
-        "hypernet": net.cfg.to_dict(),
-        "train": tcfg.to_dict(),
-        "data": str(data.root),
-        "instances": [inst.to_json() for inst in data.instances],
-        "camera": {"width": data.width, "height": data.height, "focal": data.focal},
-        "weights_dtype": str(dtype).removeprefix("torch."),
-        **extra,
-    }
-    (run / PRIOR_META).write_text(json.dumps(meta, indent=2))
-    return run / PRIOR_WEIGHTS
-
-
-def load_prior(run: Path, device=None) -> tuple[HyperNetwork, dict]:
-    """The exported prior of a training run (weights promoted to float32) and its metadata."""
-    run = Path(run)
-    if not (run / PRIOR_WEIGHTS).is_file():
-        raise FileNotFoundError(f"{run} holds no trained prior ({PRIOR_WEIGHTS}); run `hypnerf train` to the end first")
-    meta = json.loads((run / PRIOR_META).read_text())
-    cfg = HyperNetConfig.from_dict(meta["hypernet"])
-    instances = meta["instances"]
-    net = HyperNetwork(cfg, len(instances), [i["shape_index"] for i in instances])
-    state = {k: (v.float() if v.is_floating_point() else v) for k, v in load_file(str(run / PRIOR_WEIGHTS)).items()}
-    net.load_state_dict(state)
-    return net.to(device or "cpu").eval(), meta
 
 
 # ---------------------------------------------------------------------------------------------
@@ -269,8 +213,8 @@ def train(
         if not (run / CHECKPOINT).is_file():
             raise FileNotFoundError(f"--resume: {run / CHECKPOINT} does not exist; start the run without --resume")
         checkpoint = torch.load(run / CHECKPOINT, map_location="cpu", weights_only=False)
-        hcfg = HyperNetConfig.from_dict(checkpoint["hypernet"])
-        tcfg = TrainConfig.from_dict(checkpoint["train"])
+        hcfg = config.from_dict(HyperNetConfig, checkpoint["hypernet"])
+        tcfg = config.from_dict(TrainConfig, checkpoint["train"])
         log.info("resuming %s at step %d", run, checkpoint["step"])
 
     torch.manual_seed(tcfg.seed)
@@ -285,9 +229,9 @@ def train(
         counts = net.head_parameter_counts()
         log.info("hypernetwork parameters: %s (total %d)", ", ".join(f"{k} {v:,}" for k, v in counts.items()), sum(counts.values()))
     # fused: one pass over each tensor per step instead of a dozen (the table head alone is 8M values)
-    optimizer = torch.optim.Adam(net.parameters(), lr=tcfg.lr, betas=tcfg.betas, eps=1e-15, fused=True)
-    decay = math.log(tcfg.final_lr_factor) / max(tcfg.steps, 1)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: math.exp(decay * step))
+    optimizer, scheduler = adam_with_decay(
+        net.parameters(), lr=tcfg.lr, steps=tcfg.steps, final_lr_factor=tcfg.final_lr_factor, betas=tcfg.betas, fused=True
+    )
     history: list[dict] = []
     start_step = 0
     elapsed_before = 0.0
@@ -307,7 +251,7 @@ def train(
     def state(step: int, elapsed: float) -> dict:
         return {
             "model": net.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-            "step": step, "history": history, "elapsed_s": elapsed, "hypernet": hcfg.to_dict(), "train": tcfg.to_dict(),
+            "step": step, "history": history, "elapsed_s": elapsed, "hypernet": config.to_dict(hcfg), "train": config.to_dict(tcfg),
         }
 
     started = time.perf_counter()
@@ -348,7 +292,7 @@ def train(
             record = {
                 "step": step,
                 "loss": float(loss.detach()),
-                "train_psnr": -10 * math.log10(max(float(mse), 1e-10)),
+                "train_psnr": mse_to_psnr(float(mse)),
                 "grad_norm": float(grad_norm),
                 "lr": scheduler.get_last_lr()[0],
                 "rays_per_s": window["rays"] / seconds,
@@ -357,7 +301,8 @@ def train(
                 "elapsed_s": elapsed_before + now - started,
             }
             if validating:
-                record["val_psnr"] = validate(net, val_views, device)
+                scores = validate(net, data, val_views, device)
+                record.update({f"val_{key}": value for key, value in scores.items()})
             history.append(record)
             window = {"time": time.perf_counter(), "rays": 0, "samples": 0}
             bar.set_postfix(psnr=f"{record['train_psnr']:.2f}", **({"val": f"{record['val_psnr']:.2f}"} if "val_psnr" in record else {}))
@@ -379,69 +324,10 @@ def train(
             "parameters": net.head_parameter_counts(),
             "final": history[-1] if history else {},
         }
-        export_prior(run, net, data, tcfg, {"summary": summary})
+        export_prior(run, net, data, {"train": config.to_dict(tcfg), "summary": summary})
         (run / "history.json").write_text(json.dumps(history, indent=2))
-        log.info("prior written to %s (%d instances, %.0f s)", run / PRIOR_WEIGHTS, len(data.instances), wall)
+        log.info("prior written to %s (%d instances, %.0f s)", run, len(data.instances), wall)
     if workers.world > 1:
         dist.barrier()
         dist.destroy_process_group()
     return summary
-
-
-# ---------------------------------------------------------------------------------------------
-# Command line (``hypnerf train`` and ``python -m model.train`` for torchrun)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    defaults = TrainConfig()
-    parser.add_argument("--data", required=True, type=Path, help="dataset folder (its train split is used)")
-    parser.add_argument("--out", required=True, type=Path, help="run folder: checkpoint, history, exported prior")
-    parser.add_argument("--preset", default="cpu", help="hypernetwork size: paper, cpu, cpu-no-mrhe or tiny (default cpu)")
-    parser.add_argument("--steps", type=int, default=defaults.steps)
-    parser.add_argument("--objects-per-step", type=int, default=defaults.objects_per_step)
-    parser.add_argument("--rays", type=int, default=defaults.rays_per_step, help="rays per step over all objects")
-    parser.add_argument("--lr", type=float, default=defaults.lr)
-    parser.add_argument("--validate-every", type=int, default=defaults.validate_every, help="steps between validation renders (0: never)")
-    parser.add_argument("--checkpoint-every", type=int, default=defaults.checkpoint_every)
-    parser.add_argument("--limit", type=int, help="train on the first N instances only")
-    parser.add_argument("--occupancy", choices=OCCUPANCY_SOURCES, default=defaults.occupancy,
-                        help="where training rays take samples: the visual hull (default), cells at the ground-truth mesh surface, or the whole box")
-    parser.add_argument("--seed", type=int, default=defaults.seed)
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint (its settings win)")
-    parser.add_argument("--until", type=int, help="stop after this step with a checkpoint (continue later with --resume)")
-
-
-def run_from_args(args) -> int:
-    if args.steps < 1:
-        raise ValueError("--steps must be at least 1")
-    tcfg = TrainConfig(
-        steps=args.steps,
-        objects_per_step=args.objects_per_step,
-        rays_per_step=args.rays,
-        lr=args.lr,
-        validate_every=args.validate_every,
-        checkpoint_every=args.checkpoint_every,
-        occupancy=args.occupancy,
-        seed=args.seed,
-    )
-    summary = train(args.data, args.out, preset(args.preset), tcfg, resume=args.resume, until=args.until, limit=args.limit)
-    if summary:
-        final = summary.get("final", {})
-        print(f"trained {summary['instances']} instances in {summary['wall_s']:.0f} s; final train PSNR {final.get('train_psnr', float('nan')):.2f} dB -> {args.out}")
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    parser = argparse.ArgumentParser(prog="python -m model.train", description="Train the hypernetwork prior (torchrun-ready).")
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return run_from_args(args)
-    except (ValueError, FileNotFoundError) as error:
-        print(f"train: error: {error}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

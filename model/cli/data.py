@@ -1,6 +1,7 @@
-"""The ``hypnerf data`` command line: ``synth``, ``import-meshes`` and ``import-sh3d`` (argparse).
+"""The ``hypnerf data`` command line: ``synth``, ``import-meshes``, ``import-sh3d`` and
+``import-transforms`` (argparse).
 
-:func:`register` adds the ``data`` command to the top-level parser's subparsers. Each subcommand
+:func:`register` adds the subcommands to the ``data`` parser. Each subcommand
 sets ``func``: called with the parsed arguments, it builds the dataset and returns the exit
 status (0 on success, 1 with a message on stderr when the input or environment is at fault).
 """
@@ -25,9 +26,8 @@ from model.data.synth import synth_objects
 log = logging.getLogger(__name__)
 
 
-def register(subparsers) -> argparse.ArgumentParser:
-    """Add ``data`` with its subcommands to an argparse subparsers object; returns the ``data`` parser."""
-    data = subparsers.add_parser("data", help="build multi-view datasets", description="Build multi-view datasets.")
+def register(data: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the dataset subcommands to the ``data`` parser and return it."""
     commands = data.add_subparsers(dest="data_command", metavar="COMMAND", required=True)
 
     render = argparse.ArgumentParser(add_help=False)
@@ -69,6 +69,22 @@ def register(subparsers) -> argparse.ArgumentParser:
     sh3d.add_argument("--category", choices=CATEGORIES, required=True)
     sh3d.add_argument("--limit", type=int, help="render only N models, spread evenly over the category list")
     sh3d.set_defaults(func=_run_import_sh3d)
+
+    transforms = commands.add_parser(
+        "import-transforms", help="an existing multi-view scene (NeRF-synthetic or nerfstudio transforms.json)",
+        description="Import a posed multi-view scene: the NeRF-synthetic layout (transforms_train/val/test.json) or "
+        "nerfstudio's transforms.json, keeping its pinhole intrinsics and scene box.",
+    )
+    transforms.add_argument("source", type=Path, metavar="SRC", help="folder holding transforms_train.json or transforms.json")
+    transforms.add_argument("--out", type=Path, required=True, help="dataset folder to write (one object)")
+    transforms.add_argument("--id", help="object id (default: the source folder's name)")
+    transforms.add_argument("--category", default="object", help="category written to index.json (default object)")
+    transforms.add_argument("--downscale", type=int, default=1, help="shrink images by this integer factor (default 1)")
+    transforms.add_argument("--aabb", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                            help="scene box (default: the file's aabb, else the convention's, else derived from the cameras)")
+    transforms.add_argument("--test-every", type=int, default=8,
+                            help="for files without splits, every Nth frame is held out for testing (default 8)")
+    transforms.set_defaults(func=_run_import_transforms)
     return data
 
 
@@ -101,6 +117,25 @@ def _run_import_meshes(args) -> int:
         return mesh_file_objects(args.paths, args.category, captions, args.up), len(args.paths)
 
     return _build(args, source)
+
+
+def _run_import_transforms(args) -> int:
+    from model.data.transforms import import_transforms
+
+    try:
+        report = import_transforms(
+            args.source, args.out, object_id=args.id, category=args.category, downscale=args.downscale,
+            aabb=[args.aabb[:3], args.aabb[3:]] if args.aabb else None, test_every=args.test_every,
+        )
+    except ValueError as error:
+        print(f"hypnerf data: error: {error}", file=sys.stderr)
+        return 1
+    log.info(
+        "imported %s (%s layout): %d frames (%s) at %dx%d, scene box %s (%s) -> %s",
+        report["id"], report["layout"], report["frames"], report["splits"], report["width"], report["height"],
+        report["aabb"], report["aabb_source"], args.out,
+    )
+    return 0
 
 
 def _run_import_sh3d(args) -> int:

@@ -1,4 +1,4 @@
-"""PNG output of rendered images (Pillow)."""
+"""Images: compositing straight-alpha RGBA over a background, and PNG output (Pillow)."""
 
 from __future__ import annotations
 
@@ -16,3 +16,9 @@ def to_uint8(image: torch.Tensor) -> np.ndarray:
 
 def save_png(path: Path, image: torch.Tensor) -> None:
     Image.fromarray(to_uint8(image)).save(path)
+
+
+def composite_over(rgba: torch.Tensor, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """Straight-alpha RGBA ``[..., 4]`` over a constant background -> RGB ``[..., 3]``."""
+    bg = torch.tensor(background, dtype=rgba.dtype, device=rgba.device)
+    return rgba[..., :3] * rgba[..., 3:] + bg * (1 - rgba[..., 3:])

@@ -1,4 +1,5 @@
-"""Evaluation metrics: PSNR, SSIM and Chamfer distance.
+"""Evaluation metrics: PSNR (full image and foreground, beside the blank-image floor), SSIM and
+Chamfer distance.
 
 * PSNR is a one-line formula on the mean squared error, computed here in torch on the inputs'
   device.
@@ -22,6 +23,8 @@ import pytorch_msssim
 import torch
 import trimesh
 from scipy.spatial import cKDTree
+
+from model.nerf.mesh import sample_surface
 
 # PSNR of identical images is +inf; it is capped here so that means over views and tables stay
 # finite. 100 dB is an MSE of 1e-10, far below the float32 rendering noise of any real image.
@@ -89,6 +92,49 @@ def psnr(pred, target, mask=None) -> float:
     return float(per_image.mean())
 
 
+# A predicted pixel is foreground when its opacity would survive 8-bit quantisation (the alpha an
+# RGBA PNG of the render would store is non-zero).
+PREDICTED_ALPHA_MIN = 1.0 / 255.0
+FOREGROUND_DEFINITION = "pixels where the ground-truth alpha > 0 or the rendered opacity >= 1/255"
+
+
+def foreground_mask(target_alpha, pred_opacity=None) -> torch.Tensor:
+    """Boolean ``[..., H, W]``: where the ground truth (``target_alpha``) or the render has alpha."""
+    mask = _as_tensor(target_alpha) > 0
+    if pred_opacity is not None:
+        mask = mask | (_as_tensor(pred_opacity).to(mask.device) >= PREDICTED_ALPHA_MIN)
+    return mask
+
+
+def image_quality(pred, target_rgba, pred_opacity=None, background=(1.0, 1.0, 1.0)) -> dict:
+    """PSNR of renders against RGBA ground truth, over the full image and over the foreground, with
+    the floor: the same two figures for a blank image of the background colour.
+
+    ``pred [V, H, W, 3]``, ``target_rgba [V, H, W, 4]`` (straight alpha, composited here over
+    ``background``), ``pred_opacity [V, H, W]`` (optional). The floor is scored on the same pixels
+    as the render, so a blank render scores exactly the floor; a quality figure only means
+    something above it. Views with no foreground pixel are left out of the foreground means.
+    """
+    pred = _as_tensor(pred).float()
+    target_rgba = _as_tensor(target_rgba).to(device=pred.device, dtype=torch.float32)
+    bg = torch.tensor(background, dtype=torch.float32, device=pred.device)
+    target = target_rgba[..., :3] * target_rgba[..., 3:] + bg * (1 - target_rgba[..., 3:])
+    blank = bg.expand_as(target)
+    mask = foreground_mask(target_rgba[..., 3], pred_opacity)
+    views = [v for v in range(pred.shape[0]) if bool(mask[v].any())]
+    per_view = [psnr(pred[v], target[v]) for v in range(pred.shape[0])]
+    per_view_fg = [psnr(pred[v], target[v], mask[v]) for v in views]
+    return {
+        "psnr": sum(per_view) / len(per_view),
+        "psnr_fg": sum(per_view_fg) / len(per_view_fg) if views else None,
+        "floor_psnr": psnr(blank, target),
+        "floor_psnr_fg": sum(psnr(blank[v], target[v], mask[v]) for v in views) / len(views) if views else None,
+        "foreground_fraction": float(mask.float().mean()),
+        "psnr_per_view": per_view,
+        "foreground": FOREGROUND_DEFINITION,
+    }
+
+
 def ssim(pred, target) -> float:
     """Structural similarity of images in [0, 1], ``[H, W, 3]`` or ``[V, H, W, 3]`` (mean over V).
 
@@ -142,33 +188,15 @@ def chamfer_distance(points_a, points_b) -> float:
     return float(0.5 * (d_ab.mean() + d_ba.mean()))
 
 
-def sample_surface(mesh: trimesh.Trimesh, n_points: int, seed: int = 0) -> np.ndarray:
-    """``n_points`` points uniform on the surface (faces chosen by area), reproducible by ``seed``.
-
-    An empty mesh, or one of zero area, gives ``[0, 3]``.
-    """
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise ValueError(f"expected a trimesh.Trimesh, got {type(mesh).__name__}")
-    if n_points <= 0:
-        raise ValueError(f"n_points must be positive, got {n_points}")
-    if mesh.is_empty or not mesh.area > 0.0:
-        return np.zeros((0, 3))
-    if not np.isfinite(mesh.vertices).all():
-        raise ValueError("mesh vertices contain NaN or infinite coordinates")
-    points, _ = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
-    return np.asarray(points, dtype=np.float64)
-
-
 def mesh_chamfer(mesh_a: trimesh.Trimesh, mesh_b: trimesh.Trimesh, n_points: int = 4096,
-                 seed: int = 0) -> float:
+                 seed: int = 0, unit: float = 1.0) -> float:
     """Chamfer distance between two surfaces, as in the paper: 4096 points per surface.
 
     Each mesh is sampled with its own generator seeded by ``seed`` (area-weighted, uniform), so
     the value is deterministic, symmetric in its arguments, and exactly 0 for identical meshes.
-    Distances are ``chamfer_distance`` (mean, unsquared, halved sum of both directions) in the
-    meshes' coordinates, with no rescaling: this project's meshes live in the scene box
-    [-0.5, 0.5]^3 with objects normalised to a longest side of 0.9, so the value is in
-    scene-box units (0.01 is 1.1% of the object's longest side). An empty (or zero-area) mesh
-    on either side gives ``inf``.
+    Distances are ``chamfer_distance`` (mean, unsquared, halved sum of both directions) divided by
+    ``unit`` (pass the scene box's longest side): scene-box units at any world scale. This
+    project's meshes live in [-0.5, 0.5]^3 with objects normalised to a longest side of 0.9, so
+    0.01 is 1.1% of the object's longest side. An empty (or zero-area) mesh on either side gives ``inf``.
     """
-    return chamfer_distance(sample_surface(mesh_a, n_points, seed), sample_surface(mesh_b, n_points, seed))
+    return chamfer_distance(sample_surface(mesh_a, n_points, seed), sample_surface(mesh_b, n_points, seed)) / unit

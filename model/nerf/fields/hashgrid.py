@@ -13,15 +13,15 @@ Layers are bias-free, so the emitted tensors are the hash tables and five weight
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 import torch
 
-from model.encoding import HashGridConfig, encode, init_tables
-from model.sh import sh_encode
+from model.nerf.encodings.hashgrid import HashGridConfig, encode, init_tables
+from model.nerf.encodings.sh import sh_encode
+from model.nerf.fields.protocol import FieldParams
 
-FieldParams = dict[str, torch.Tensor]
 
 # Largest pre-activation the density exponential sees: exp(15) ~ 3.3e6, far above any density a
 # fitted object needs, and small enough that sigma * step stays finite in float16.
@@ -52,10 +52,8 @@ def truncated_exp(x: torch.Tensor) -> torch.Tensor:
 class FieldConfig:
     """The hash-grid field (MRHE + small MLPs).
 
-    Every field kind (see ``model.fields``) offers the same methods, which the renderer, the fits
-    and the hypernetwork use: ``param_shapes``, ``shape_param_names`` / ``color_param_names`` (which
-    code drives which tensor), ``init_params``, ``density``, ``view_term``, ``color_from_view_term``,
-    ``to_dict`` / ``from_dict``.
+    Implements the field protocol (``model.nerf.fields.protocol.Field``), which the renderer, the
+    fits and the hypernetwork use.
     """
 
     kind: ClassVar[str] = "hashgrid"
@@ -106,17 +104,6 @@ class FieldConfig:
 
     def color_from_view_term(self, params: FieldParams, geo: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
         return color_from_view_term(params, geo, view, self)
-
-    def to_dict(self) -> dict:
-        out = {"kind": self.kind, **asdict(self)}
-        out["encoding"] = self.encoding.to_dict()
-        return out
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "FieldConfig":
-        data = {k: v for k, v in data.items() if k != "kind"}
-        data["encoding"] = HashGridConfig.from_dict(data.get("encoding", {}))
-        return cls(**data)
 
 
 def init_params(cfg: FieldConfig, batch: int = 1, *, generator=None, device=None) -> FieldParams:

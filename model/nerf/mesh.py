@@ -16,7 +16,11 @@ import torch
 import trimesh
 from skimage.measure import marching_cubes
 
-# torch-ngp's save_mesh threshold: density 10 per scene unit is an opacity of
+from model.nerf.fields import Field, FieldParams, world_color, world_density
+from model.nerf.occupancy import OccupancyGrid
+from model.nerf.scene import SceneBox
+
+# torch-ngp's save_mesh threshold: density 10 per unit of the scene box is an opacity of
 # 1 - exp(-10 * 0.1) = 63% over a tenth of the box, a clear surface without catching haze.
 DEFAULT_THRESHOLD = 10.0
 
@@ -179,3 +183,38 @@ def export_mesh(mesh: trimesh.Trimesh, path, format: str | None = None) -> Path:
         raise ValueError(f"cannot tell the format of {str(path)!r}; supported: {', '.join(SUPPORTED_FORMATS)}")
     path.write_bytes(mesh_bytes(mesh, format if format is not None else path.suffix))
     return path
+
+
+def sample_surface(mesh: trimesh.Trimesh, n_points: int, seed: int = 0) -> np.ndarray:
+    """``n_points`` points uniform on the surface (faces chosen by area), reproducible by ``seed``.
+
+    An empty mesh, or one of zero area, gives ``[0, 3]``.
+    """
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"expected a trimesh.Trimesh, got {type(mesh).__name__}")
+    if n_points <= 0:
+        raise ValueError(f"n_points must be positive, got {n_points}")
+    if mesh.is_empty or not mesh.area > 0.0:
+        return np.zeros((0, 3))
+    if not np.isfinite(mesh.vertices).all():
+        raise ValueError("mesh vertices contain NaN or infinite coordinates")
+    points, _ = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
+    return np.asarray(points, dtype=np.float64)
+
+
+def field_mesh(params: FieldParams, field_cfg: Field, grid: OccupancyGrid, scene: SceneBox, resolution: int = 128) -> trimesh.Trimesh:
+    """Marching-cubes mesh of a NeRF over its occupied box, with vertex colours, in world coordinates.
+
+    Density in cells the occupancy grid marks empty is taken as zero, as the renderer does, so the
+    mesh shows the NeRF that renders and not the haze left where no ray constrains it. Densities
+    are per unit of the scene box, so the threshold means the same at any world scale.
+    """
+    box = grid.tight_box()
+    if box is None:
+        return trimesh.Trimesh()
+    density = world_density(params, field_cfg, scene)
+
+    def rendered_density(points: torch.Tensor) -> torch.Tensor:
+        return density(points) * grid.lookup(points)
+
+    return extract_mesh(rendered_density, box[0], box[1], resolution=resolution, color_fn=world_color(params, field_cfg, scene))
