@@ -62,7 +62,7 @@ def training_report(run: Path, name: str) -> dict:
         "samples_per_ray": sum(h["samples_per_ray"] for h in window) / len(window),
         "parameters": summary["parameters"],
         "weights_bytes": (run / "hypernet.safetensors").stat().st_size,
-        "curve": [{k: h[k] for k in ("step", "elapsed_s", "train_psnr", "val_psnr") if k in h} for h in history if "val_psnr" in h],
+        "curve": [{k: h[k] for k in ("step", "elapsed_s", "train_psnr", "val_psnr", "val_psnr_fg", "val_floor_psnr", "val_floor_psnr_fg") if k in h} for h in history if "val_psnr" in h],
     }
     return report
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import sys
 
-from benchmarks import bench_encoding, bench_fit, bench_render, report
+from benchmarks import bench_encoding, bench_fit, bench_import, bench_render, report
 
 
 def main() -> int:
-    steps = (lambda: bench_encoding.main([]), lambda: bench_fit.main([]), bench_render.main)
+    steps = (lambda: bench_encoding.main([]), lambda: bench_fit.main([]), bench_render.main, bench_import.main)
     for step in steps:
         code = step()
         if code:

@@ -232,3 +232,21 @@ def test_swapped_geometry_is_the_shape_sources_by_construction(trained):
     assert torch.equal(field.density(swapped, points)[0], field.density(own, points)[0])
     # the colour does change: the swap carries B's colour net, not A's
     assert any(not torch.equal(swapped[n], own[n]) for n in field.color_param_names())
+
+
+def test_cached_fits_are_redone_when_the_code_changes(chairs, tmp_path):
+    from model.eval.prior import per_object_fit
+    from model.optimize.fit import FitConfig
+
+    obj = load_category(chairs, progress=False).instances[0].id
+    cfg = FitConfig(field=preset("tiny").field, steps=5, rays_per_step=256)
+    first, _ = per_object_fit(chairs, obj, tmp_path, cfg, "cpu", 16)
+    weights = tmp_path / obj / "field.safetensors"
+    written = weights.stat().st_mtime_ns
+    per_object_fit(chairs, obj, tmp_path, cfg, "cpu", 16)
+    assert weights.stat().st_mtime_ns == written  # same settings, data and code: reused
+    metrics = json.loads((tmp_path / obj / "metrics.json").read_text())
+    metrics["code_version"] = "made-by-older-code"
+    (tmp_path / obj / "metrics.json").write_text(json.dumps(metrics))
+    again, _ = per_object_fit(chairs, obj, tmp_path, cfg, "cpu", 16)
+    assert weights.stat().st_mtime_ns != written and again["code_version"] == first["code_version"] != "made-by-older-code"

@@ -18,11 +18,17 @@ from model.nerf.fields import Field, FieldParams
 from model.nerf.images import composite_over, save_png
 from model.nerf.mesh import export_mesh, field_mesh
 from model.nerf.occupancy import OccupancyGrid
+from model.nerf.provenance import source_digest
 from model.nerf.renderer import RenderConfig, render_image
 from model.nerf.scene import SceneBox
 from model.optimize.fit import FitConfig, fit_object, save_fit
 
 log = logging.getLogger(__name__)
+
+
+def evaluation_code_version() -> str:
+    """Digest of the code a fit's ``metrics.json`` depends on: the fit's and the evaluation's."""
+    return source_digest("nerf", "optimize", "data/dataset.py", "eval/field.py", "eval/metrics.py")
 
 
 def render_views(params: FieldParams, field_cfg: Field, views: Views, cfg: RenderConfig, grid: OccupancyGrid | None, scene: SceneBox | None = None):
@@ -91,7 +97,7 @@ def fit_and_evaluate(root: Path, object_id: str, out: Path, cfg: FitConfig, devi
     metrics.update(
         {
             "wall_s": result.wall_s, "object": object_id, "steps": cfg.steps, "occupied_fraction": result.grid.fraction,
-            "used_masks": result.used_masks, "trained_with_alpha": train.has_alpha,
+            "used_masks": result.used_masks, "trained_with_alpha": train.has_alpha, "code_version": evaluation_code_version(),
         }
     )
     (out / "renders").mkdir(exist_ok=True)

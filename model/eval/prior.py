@@ -6,7 +6,7 @@ instance's codes, the occupancy grid comes from the NeRF's own density, and the 
 settings draw the fixed held-out views. Quality is full-image and foreground PSNR beside the
 blank-image floor (``model.eval.metrics.image_quality``). Per-object fits of the same field
 architecture are the reference (``hypnerf fit``; cached in a folder and reused only when their
-settings, data and code version match).
+settings and data match and their metrics were made by the same fit and evaluation code).
 
 Disentanglement: the density of a NeRF depends on the shape code alone, so a swapped NeRF's
 geometry *is* the shape source's, by construction; the report says so and checks it, and measures
@@ -32,14 +32,14 @@ from skimage.color import rgb2lab
 from tqdm import tqdm
 
 from model.data.dataset import Views, load_views
-from model.eval.field import evaluate_field, fit_and_evaluate, render_views
+from model.eval.field import evaluate_field, evaluation_code_version, fit_and_evaluate, render_views
 from model.eval.storage import crossover_instances, storage_curve, storage_model
 from model.nerf import config
 from model.nerf.fields import FieldParams
 from model.nerf.images import composite_over, save_png, to_uint8
 from model.nerf.mesh import export_mesh, field_mesh
 from model.nerf.renderer import RenderConfig
-from model.optimize.fit import FitConfig, fit_code_version
+from model.optimize.fit import FitConfig
 from model.prior.codes import generate, generated_grid, swap_codes
 from model.prior.io import PRIOR_WEIGHTS, Prior, load_prior
 
@@ -87,15 +87,15 @@ def per_object_fit(root: Path, object_id: str, fits: Path, cfg: FitConfig, devic
     out = fits / object_id
     metrics_file, config_file = out / "metrics.json", out / "config.json"
     if metrics_file.is_file() and config_file.is_file():
-        saved = json.loads(config_file.read_text())
+        saved, metrics = json.loads(config_file.read_text()), json.loads(metrics_file.read_text())
         same = (
-            saved.get("code_version") == fit_code_version()
+            metrics.get("code_version") == evaluation_code_version()
             and config.from_dict(FitConfig, saved["fit"]) == cfg
             and Path(saved.get("data", "")) == root.resolve()
         )
         if same:
             log.info("reusing the per-object fit of %s in %s", object_id, out)
-            return json.loads(metrics_file.read_text()), (out / "field.safetensors").stat().st_size
+            return metrics, (out / "field.safetensors").stat().st_size
         log.info("the per-object fit in %s was made with other settings or code; fitting again", out)
     metrics = fit_and_evaluate(root, object_id, out, cfg, device, mesh_resolution)
     return metrics, (out / "field.safetensors").stat().st_size
