@@ -18,6 +18,7 @@ import torch
 
 from benchmarks.common import ROOT, ensure_sh3d_chairs, hypnerf, write_result
 from model.data.dataset import load_index
+from model.eval.field import evaluation_code_version
 
 RUNS = ROOT / "runs" / "bench-fit"
 MODES = {"masks": [], "no-masks": ["--no-masks"]}
@@ -34,8 +35,12 @@ def main(argv: list[str] | None = None) -> int:
     for entry in list(load_index(data))[: args.objects]:
         for mode, flags in MODES.items():
             out = RUNS / mode / entry.id
-            hypnerf("fit", "--data", str(data), "--object", entry.id, "--out", str(out), "--steps", str(args.steps), *flags)
-            m = json.loads((out / "metrics.json").read_text())
+            done = out / "metrics.json"
+            # a fit made by this code with these steps is kept (an interrupted benchmark resumes)
+            if not (done.is_file() and json.loads(done.read_text()).get("code_version") == evaluation_code_version()
+                    and json.loads(done.read_text())["steps"] == args.steps):
+                hypnerf("fit", "--data", str(data), "--object", entry.id, "--out", str(out), "--steps", str(args.steps), *flags)
+            m = json.loads(done.read_text())
             rows.append({"object": entry.id, "mode": mode, **{k: m[k] for k in KEYS}})
             print(f"{entry.id} [{mode}]: {m['psnr']:.2f} dB (fg {m['psnr_fg']:.2f}, floor {m['floor_psnr']:.2f} / {m['floor_psnr_fg']:.2f}), {m['wall_s']:.0f} s")
     mean = {mode: {k: statistics.fmean(r[k] for r in rows if r["mode"] == mode) for k in KEYS} for mode in MODES}

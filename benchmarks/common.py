@@ -26,6 +26,9 @@ def ensure_sh3d_chairs(count: int = 6, res: int = 128) -> Path:
 
 
 def write_result(name: str, payload: dict) -> Path:
+    from model.nerf.encodings.kernels import machine_summary
+
+    payload = {**payload, "machine": payload.get("machine", machine_summary())}
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps(payload, indent=2) + "\n")

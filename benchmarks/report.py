@@ -12,7 +12,7 @@ COMMANDS = {
     "compression_no_mrhe": "hypnerf eval compression --run runs/prior-no-mrhe --data data/sh3d-chair-variants --json benchmarks/results/compression_no_mrhe.json --objects 10 --fits runs/prior-fits --fit-steps 2000 --ablation no-mrhe",
     "disentanglement": "hypnerf eval disentanglement --run runs/prior-cpu --data data/sh3d-chair-variants --json benchmarks/results/disentanglement.json --pairs 10",
     "encoding": "make bench  (or: python -m benchmarks.bench_encoding)",
-    "fit": "python -m benchmarks.bench_fit  (runs hypnerf fit per object and mode, 6 objects, 2000 steps; no-masks adds --no-masks)",
+    "fit": "python -m benchmarks.bench_fit  --objects 4  (runs hypnerf fit per object and mode, 2000 steps; no-masks adds --no-masks)",
     "import": "python -m benchmarks.bench_import  (hypnerf data synth, then hypnerf data import-transforms and hypnerf fit --steps 1500)",
     "presets": "python -m benchmarks.bench_presets",
     "render": "python -m benchmarks.bench_render  (runs: hypnerf bench render --fit runs/bench-fit/masks/<first chair> --json benchmarks/results/render.json)",
@@ -304,7 +304,9 @@ def main() -> int:
         if data is None:
             continue
         lines += section(data)
-        lines += [f"Command: `{COMMANDS[name]}`", ""]
+        machine = data.get("machine")
+        where = f"{machine['cpu']}, {machine['cores']} cores, hash-grid kernel {'AVX-512' if machine['avx512'] else 'portable (no AVX-512)'}" if machine else "a machine not recorded in the file"
+        lines += [f"Command: `{COMMANDS[name]}`; measured on {where}.", ""]
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines))
     print("wrote BENCHMARKS.md")
     return 0

@@ -23,6 +23,7 @@ import torch
 
 from model.data.dataset import load_views
 from model.nerf import config
+from model.nerf.encodings.kernels import machine_summary
 from model.eval.field import render_views
 from model.eval.metrics import image_quality
 from model.nerf.renderer import DENSE, DENSE_TIGHT, RenderConfig
@@ -75,5 +76,6 @@ def run_render_bench(run_dir: Path, *, repeats: int = 3, views: int = 4) -> dict
         "resolution": [test.width, test.height],
         "views": views,
         "threads": torch.get_num_threads(),
+        "machine": machine_summary(),
         "runs": runs,
     }

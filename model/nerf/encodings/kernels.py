@@ -64,6 +64,14 @@ def _cpu_identity() -> str:
     return "\n".join(sorted({line for line in lines if line.split(":")[0].strip() in wanted}))
 
 
+def machine_summary() -> dict:
+    """What a timing depends on: the CPU model, its core count and whether the hash-grid kernel's
+    AVX-512 path can run (otherwise the portable path does, about 1.5x slower)."""
+    identity = _cpu_identity()
+    model = next((line.split(":", 1)[1].strip() for line in identity.splitlines() if line.startswith("model name")), platform.processor())
+    return {"cpu": model, "cores": os.cpu_count(), "avx512": " avx512f" in f" {identity} ".replace("\n", " ")}
+
+
 @functools.lru_cache(maxsize=None)
 def _compiler_identity() -> str:
     cxx = os.environ.get("CXX", "c++")
