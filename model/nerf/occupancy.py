@@ -253,7 +253,6 @@ class MaintainedGrid:
         self.cell_density = torch.full(self.grid.occupied.shape, float("inf"), device=device)
         self.threshold = density_threshold(cfg.resolution, cfg.cell_opacity)
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed)
-        self.updates = 0
 
     def due(self, step: int) -> bool:
         return step >= self.cfg.warmup_steps and (step - self.cfg.warmup_steps) % self.cfg.update_every == 0
@@ -284,5 +283,4 @@ class MaintainedGrid:
         if self.limit is not None:
             occupied &= self.limit.occupied
         self.grid = OccupancyGrid(occupied, self.grid.box_min, self.grid.box_max)
-        self.updates += 1
         return self.grid

@@ -54,12 +54,6 @@ class Intrinsics:
     def pixels(self) -> int:
         return self.width * self.height
 
-    def scaled(self, factor: float) -> Intrinsics:
-        """The same camera for an image resized by ``factor`` (width and height rounded)."""
-        return Intrinsics(
-            round(self.width * factor), round(self.height * factor), self.fx * factor, self.fy * factor, self.cx * factor, self.cy * factor
-        )
-
 
 def camera_directions(camera: Intrinsics, *, device=None, dtype=torch.float32) -> torch.Tensor:
     """Unnormalised ray directions in the camera frame, ``[H, W, 3]`` (z = -1)."""

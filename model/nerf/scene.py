@@ -80,11 +80,6 @@ class SceneBox:
         lo, hi = self.tensors(directions.device, directions.dtype)
         return (directions / (hi - lo)).norm(dim=-1)
 
-    def contains(self, points: torch.Tensor) -> torch.Tensor:
-        """Whether each point ``[..., 3]`` lies inside the box (faces included) -> ``[...]`` bool."""
-        lo, hi = self.tensors(points.device, points.dtype)
-        return ((points >= lo) & (points <= hi)).all(dim=-1)
-
 
 UNIT_BOX = SceneBox()
 """The box of this project's own datasets: [-0.5, 0.5]^3, objects with their longest side 0.9."""
