@@ -131,11 +131,13 @@ def training_section(data: dict) -> list[str]:
         "## Category prior: training (Sweet Home 3D chairs with colour variants)",
         "",
         *_table(
-            ["preset", "instances (shapes)", "steps", "wall", "rays/s", "samples/s", "samples/ray", "weights"],
+            ["preset", "instances (shapes)", "steps", "wall", "rays/s", "samples/s", "samples/ray", "weights", "last validation full / fg / floor fg (dB)", "machine"],
             [
                 [
                     run["preset"], f"{run['instances']} ({run['shapes']})", str(run["steps"]), f"{run['wall_s'] / 60:.0f} min", f"{run['rays_per_s']:.0f}",
                     f"{run['samples_per_s'] / 1e6:.2f} M", f"{run['samples_per_ray']:.1f}", f"{run['weights_bytes'] / 1e6:.1f} MB",
+                    f"{run['curve'][-1]['val_psnr']:.2f} / {_fg(run['curve'][-1].get('val_psnr_fg'))} / {_fg(run['curve'][-1].get('val_floor_psnr_fg'))}",
+                    (f"{run['machine']['cpu']}{'' if run['machine']['avx512'] else ', no AVX-512'}" if "machine" in run else "not recorded"),
                 ]
                 for run in data["runs"]
             ],

@@ -142,6 +142,9 @@ def cmd_swap(args) -> int:
 
 
 def _write_json(path: str, data: dict) -> None:
+    from model.nerf.encodings.kernels import machine_summary
+
+    data.setdefault("machine", machine_summary())
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(data, indent=2))
 
