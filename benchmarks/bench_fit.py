@@ -36,11 +36,11 @@ def main(argv: list[str] | None = None) -> int:
         for mode, flags in MODES.items():
             out = RUNS / mode / entry.id
             done = out / "metrics.json"
+            m = json.loads(done.read_text()) if done.is_file() else {}
             # a fit made by this code with these steps is kept (an interrupted benchmark resumes)
-            if not (done.is_file() and json.loads(done.read_text()).get("code_version") == evaluation_code_version()
-                    and json.loads(done.read_text())["steps"] == args.steps):
+            if m.get("code_version") != evaluation_code_version() or m.get("steps") != args.steps:
                 hypnerf("fit", "--data", str(data), "--object", entry.id, "--out", str(out), "--steps", str(args.steps), *flags)
-            m = json.loads(done.read_text())
+                m = json.loads(done.read_text())
             rows.append({"object": entry.id, "mode": mode, **{k: m[k] for k in KEYS}})
             print(f"{entry.id} [{mode}]: {m['psnr']:.2f} dB (fg {m['psnr_fg']:.2f}, floor {m['floor_psnr']:.2f} / {m['floor_psnr_fg']:.2f}), {m['wall_s']:.0f} s")
     mean = {mode: {k: statistics.fmean(r[k] for r in rows if r["mode"] == mode) for k in KEYS} for mode in MODES}

@@ -228,10 +228,11 @@ def geometry_difference(prior: Prior, swapped: FieldParams, shape_params: FieldP
     return float((field.density(swapped, unit)[0] - field.density(shape_params, unit)[0]).abs().max())
 
 
-def _renders(prior: Prior, params: FieldParams, views: Views) -> tuple[torch.Tensor, torch.Tensor]:
+def _renders(prior: Prior, params: FieldParams, views: Views):
+    """Renders ``[V, H, W, 3]``, opacities ``[V, H, W]`` and the generated grid they used."""
     grid = generated_grid(params, prior.net.cfg.field, prior.scene)
     rgb, alpha, _, _ = render_views(params, prior.net.cfg.field, views, RenderConfig(), grid, prior.scene)
-    return rgb.cpu(), alpha.cpu()
+    return rgb.cpu(), alpha.cpu(), grid
 
 
 def disentanglement_pair(prior: Prior, data_root: Path, a: int, b: int, *, out: Path | None = None, mesh_resolution: int = 128) -> dict:
@@ -240,8 +241,8 @@ def disentanglement_pair(prior: Prior, data_root: Path, a: int, b: int, *, out: 
     test_a = load_views(data_root / ids[a], split="test")
     test_b = load_views(data_root / ids[b], split="test")
     swapped = swap_codes(prior.net, a, b)
-    swap_rgb, swap_alpha = _renders(prior, swapped, test_a)
-    own_b_rgb, own_b_alpha = _renders(prior, generate(prior.net, b), test_b)
+    swap_rgb, swap_alpha, swap_grid = _renders(prior, swapped, test_a)
+    own_b_rgb, own_b_alpha, _ = _renders(prior, generate(prior.net, b), test_b)
     lab_swap = foreground_lab(swap_rgb, swap_alpha)
     lab_a = foreground_lab(test_a.images[..., :3], test_a.images[..., 3])
     lab_b = foreground_lab(test_b.images[..., :3], test_b.images[..., 3])
@@ -263,7 +264,7 @@ def disentanglement_pair(prior: Prior, data_root: Path, a: int, b: int, *, out: 
         out.mkdir(parents=True, exist_ok=True)
         for i, image in enumerate(swap_rgb):
             save_png(out / f"view_{i:03d}.png", image)
-        export_mesh(field_mesh(swapped, prior.net.cfg.field, generated_grid(swapped, prior.net.cfg.field, prior.scene), prior.scene, mesh_resolution), out / "mesh.glb")
+        export_mesh(field_mesh(swapped, prior.net.cfg.field, swap_grid, prior.scene, mesh_resolution), out / "mesh.glb")
     return result
 
 

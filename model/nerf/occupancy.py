@@ -161,6 +161,15 @@ def grid_from_density(
     return OccupancyGrid(dilate(dens > thr, dilation), box_min, box_max)
 
 
+def _cells_in_views(c2w: torch.Tensor, cameras: Sequence[Intrinsics], centers: torch.Tensor):
+    """For each view: the pixel of every cell centre ``(px, py)`` (clamped into the image) and
+    whether the view sees the centre (in front of the camera, inside its image)."""
+    for pose, camera in zip(c2w, cameras):
+        x, y, depth = project((centers - pose[:3, 3]) @ pose[:3, :3], camera)  # rot is orthonormal
+        inside = (depth > 1e-6) & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+        yield x.clamp(0, camera.width - 1).long(), y.clamp(0, camera.height - 1).long(), inside
+
+
 @torch.no_grad()
 def carve_from_masks(
     c2w: torch.Tensor,
@@ -186,34 +195,22 @@ def carve_from_masks(
     box_min, box_max = scene.tensors(masks.device)
     k = 2 * mask_dilation_px + 1
     grown = F.max_pool2d(masks[:, None].float(), kernel_size=k, stride=1, padding=mask_dilation_px)[:, 0] > 0
-    centers = cell_centers(resolution, box_min, box_max)
-    keep = torch.ones(centers.shape[0], dtype=torch.bool, device=centers.device)
-    for v in range(views):
-        rot, pos = c2w[v, :3, :3], c2w[v, :3, 3]
-        x, y, depth = project((centers - pos) @ rot, cameras[v])  # world -> camera frame (rot is orthonormal)
-        front = depth > 1e-6
-        inside = front & (x >= 0) & (x < width) & (y >= 0) & (y < height)
-        px = x.clamp(0, width - 1).long()
-        py = y.clamp(0, height - 1).long()
-        seen_empty = inside & ~grown[v, py, px]
-        keep &= ~seen_empty
+    keep = torch.ones(resolution**3, dtype=torch.bool, device=masks.device)
+    for v, (px, py, inside) in enumerate(_cells_in_views(c2w, cameras, cell_centers(resolution, box_min, box_max))):
+        keep &= ~(inside & ~grown[v, py, px])  # carve cells a view sees outside the silhouette
     occupied = dilate(keep.reshape(resolution, resolution, resolution), dilation)
     return OccupancyGrid(occupied, box_min, box_max)
-
 
 
 @torch.no_grad()
 def visible_cells(c2w: torch.Tensor, cameras: Intrinsics | Sequence[Intrinsics], scene: SceneBox, resolution: int = 64) -> OccupancyGrid:
     """Cells whose centre some view sees (in front of the camera, inside its image), as
     InstantNGP marks untrained cells: no training ray constrains the others, so they stay empty."""
-    views = c2w.shape[0]
-    cameras = [cameras] * views if isinstance(cameras, Intrinsics) else list(cameras)
+    cameras = [cameras] * c2w.shape[0] if isinstance(cameras, Intrinsics) else list(cameras)
     box_min, box_max = scene.tensors(c2w.device)
-    centers = cell_centers(resolution, box_min, box_max)
-    seen = torch.zeros(centers.shape[0], dtype=torch.bool, device=centers.device)
-    for v in range(views):
-        x, y, depth = project((centers - c2w[v, :3, 3]) @ c2w[v, :3, :3], cameras[v])
-        seen |= (depth > 1e-6) & (x >= 0) & (x < cameras[v].width) & (y >= 0) & (y < cameras[v].height)
+    seen = torch.zeros(resolution**3, dtype=torch.bool, device=c2w.device)
+    for _, _, inside in _cells_in_views(c2w, cameras, cell_centers(resolution, box_min, box_max)):
+        seen |= inside
     return OccupancyGrid(seen.reshape(resolution, resolution, resolution), box_min, box_max)
 
 
