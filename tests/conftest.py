@@ -1,8 +1,10 @@
-"""Shared fixtures: tiny fields with known densities and a tiny synthetic object to fit."""
+"""Shared fixtures: tiny fields with known densities, a tiny synthetic object to fit, and a tiny
+procedural category with a prior trained on it (built once per test run)."""
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -47,3 +49,34 @@ def camera(distance: float = 2.0, width: int = 16, fov: float = 2 * math.atan(0.
     intrinsics = Intrinsics.centred(width, width, focal_from_fov(width, fov))
     origins, directions = pixel_rays(c2w, intrinsics)
     return c2w, intrinsics, origins.reshape(-1, 3), directions.reshape(-1, 3)
+
+
+def tiny_train(steps: int, **kw):
+    """A training config small enough for tests (seconds on 2 cores)."""
+    from model.train.prior import TrainConfig
+
+    return TrainConfig(
+        steps=steps, objects_per_step=4, rays_per_step=1024, lr=1e-2, grid_resolution=24, validate_every=20,
+        validation_instances=2, checkpoint_every=kw.pop("checkpoint_every", 1000), log_every=10, **kw,
+    )
+
+
+@pytest.fixture(scope="session")
+def chairs(tmp_path_factory) -> Path:
+    """Six procedural chairs with two colour variants each: 24 views of 32x32 per object."""
+    from model.cli.main import main
+
+    root = tmp_path_factory.mktemp("category")
+    assert main(["data", "synth", "--out", str(root), "--objects", "6", "--views", "24", "--res", "32", "--seed", "5", "--variants", "2"]) == 0
+    return root
+
+
+@pytest.fixture(scope="session")
+def trained(chairs, tmp_path_factory) -> tuple[Path, dict]:
+    """A tiny prior trained for 150 steps on ``chairs``: (run folder, training summary)."""
+    from model.prior.hypernet import preset
+    from model.train.prior import train
+
+    run = tmp_path_factory.mktemp("prior")
+    summary = train(chairs, run, preset("tiny"), tiny_train(150), progress=False)
+    return run, summary

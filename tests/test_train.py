@@ -21,30 +21,10 @@ from model.nerf.scene import UNIT_BOX
 from model.prior.codes import generate, swap_codes
 from model.prior.hypernet import HyperNetConfig, HyperNetwork, preset
 from model.prior.io import PRIOR_META, PRIOR_WEIGHTS, load_prior
-from model.train.prior import CHECKPOINT, TrainConfig, Workers, step_instances, train
+from model.train.prior import CHECKPOINT, Workers, step_instances, train
+from conftest import tiny_train
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def chairs(tmp_path_factory):
-    root = tmp_path_factory.mktemp("category")
-    assert main(["data", "synth", "--out", str(root), "--objects", "6", "--views", "24", "--res", "32", "--seed", "5", "--variants", "2"]) == 0
-    return root
-
-
-def tiny_train(steps: int, **kw) -> TrainConfig:
-    return TrainConfig(
-        steps=steps, objects_per_step=4, rays_per_step=1024, lr=1e-2, grid_resolution=24, validate_every=20,
-        validation_instances=2, checkpoint_every=kw.pop("checkpoint_every", 1000), log_every=10, **kw,
-    )
-
-
-@pytest.fixture(scope="module")
-def trained(chairs, tmp_path_factory):
-    run = tmp_path_factory.mktemp("prior")
-    summary = train(chairs, run, preset("tiny"), tiny_train(150), progress=False)
-    return run, summary
 
 
 def test_category_loads_the_train_split_as_uint8(chairs):
