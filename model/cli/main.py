@@ -87,6 +87,12 @@ def register_eval(parser: argparse.ArgumentParser) -> None:
     dis.add_argument("--pairs", type=int, default=10)
     dis.add_argument("--seed", type=int, default=0)
     dis.set_defaults(func=cmd_eval_disentanglement)
+    from model.cli.query import register_eval_query
+
+    register_eval_query(eval_sub)
+    from model.cli.invert import register_generalization
+
+    register_generalization(eval_sub)
 
 
 def _fg(value) -> str:

@@ -279,11 +279,11 @@ def swap(run: Path, data_root: Path, shape_id: str, color_id: str, out: Path, me
 
 
 def save_grid(path: Path, rows: list[tuple[torch.Tensor, ...]]) -> None:
-    """A PNG of image rows (each row: shape source, colour source, swap), 2 px white gutters."""
+    """A PNG of image rows (e.g. shape source, colour source, swap), 2 px white gutters."""
     arrays = [[to_uint8(image) for image in row] for row in rows]
     h, w = arrays[0][0].shape[:2]
     gutter = 2
-    canvas = np.full((len(arrays) * (h + gutter), 3 * (w + gutter), 3), 255, dtype=np.uint8)
+    canvas = np.full((len(arrays) * (h + gutter), max(map(len, arrays)) * (w + gutter), 3), 255, dtype=np.uint8)
     for r, row in enumerate(arrays):
         for c, image in enumerate(row):
             canvas[r * (h + gutter) : r * (h + gutter) + h, c * (w + gutter) : c * (w + gutter) + w] = image

@@ -231,7 +231,8 @@ class MaintainedGrid:
     """The occupancy grid of a field being optimised, InstantNGP style.
 
     It starts fully occupied, or as ``limit`` (the cells the training views see, or the visual
-    hull when masks give one). From
+    hull when masks give one), or as ``start`` when the field's density is already known (a
+    generated NeRF's own grid at the start of test-time optimisation). From
     ``warmup_steps`` on, every ``update_every`` steps, :meth:`step` evaluates the density at one
     jittered point of every candidate cell, keeps a decaying maximum per cell (``decay``), and
     marks the cells above the threshold of ``cell_opacity``, grown by ``dilation`` cells. Cells
@@ -240,13 +241,18 @@ class MaintainedGrid:
     optimiser's random stream alone.
     """
 
-    def __init__(self, scene: SceneBox, cfg: OccupancyConfig, *, limit: OccupancyGrid | None = None, device=None):
-        if limit is not None and limit.resolution != cfg.resolution:
-            raise ValueError(f"the limiting grid has resolution {limit.resolution}, the maintained grid {cfg.resolution}")
+    def __init__(self, scene: SceneBox, cfg: OccupancyConfig, *, limit: OccupancyGrid | None = None,
+                 start: OccupancyGrid | None = None, device=None):
+        for name, given in (("limiting", limit), ("starting", start)):
+            if given is not None and given.resolution != cfg.resolution:
+                raise ValueError(f"the {name} grid has resolution {given.resolution}, the maintained grid {cfg.resolution}")
         self.cfg = cfg
         self.scene = scene
         self.limit = limit.to(device) if limit is not None else None
-        self.grid = self.limit if self.limit is not None else OccupancyGrid.full(scene, cfg.resolution, device)
+        if start is not None:
+            self.grid = start.to(device)
+        else:
+            self.grid = self.limit if self.limit is not None else OccupancyGrid.full(scene, cfg.resolution, device)
         self.cell_density = torch.full(self.grid.occupied.shape, float("inf"), device=device)
         self.threshold = density_threshold(cfg.resolution, cfg.cell_opacity)
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed)

@@ -1,0 +1,146 @@
+"""``hypnerf invert`` (a NeRF from photos of an unseen object) and ``hypnerf eval generalization``.
+
+The pose file follows transforms.json: ``camera_angle_x`` (or ``fl_x``/``fl_y``/``cx``/``cy``) at
+the top or per frame, and ``frames`` with a 4x4 camera-to-world ``transform_matrix`` each, in the
+order of the ``--image`` arguments (or with a ``file_path`` each when no ``--image`` is given).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger("hypnerf")
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    from model.optimize.tto import TTOConfig
+
+    defaults = TTOConfig()
+    parser.add_argument("--run", required=True, help="run folder written by `hypnerf train`")
+    parser.add_argument("--image", action="append", default=[], help="an input photo (PNG/JPEG; RGBA keeps its mask); repeat for more views")
+    parser.add_argument("--mask", action="append", default=[], help="a mask per --image (white = object), for photos without alpha")
+    parser.add_argument("--pose", required=True, help="transforms.json-style file with the camera of each image")
+    parser.add_argument("--out", required=True, help="folder for codes, the NeRF, renders, turntable and mesh")
+    parser.add_argument("--steps", type=int, default=defaults.steps, help="code optimisation steps")
+    parser.add_argument("--finetune-steps", type=int, default=defaults.finetune_steps, help="steps optimising the NeRF's own parameters afterwards")
+    parser.add_argument("--rays", type=int, default=defaults.rays_per_step)
+    parser.add_argument("--init", choices=["nearest", "mean"], default=defaults.init, help="starting codes")
+    parser.add_argument("--seed", type=int, default=defaults.seed)
+    parser.add_argument("--mesh-resolution", type=int, default=128)
+    parser.set_defaults(func=cmd_invert)
+
+
+def read_inputs(images: list[str], masks: list[str], pose_file: Path):
+    """Images ``[V, H, W, 4]`` in [0, 1], poses ``[V, 4, 4]`` and one camera per image from the command's files."""
+    import numpy as np
+    import torch
+    from PIL import Image, UnidentifiedImageError
+
+    from model.data.dataset import frame_intrinsics
+
+    try:
+        data = json.loads(pose_file.read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise ValueError(f"cannot read the pose file {pose_file}: {error}") from None
+    frames = data.get("frames") if isinstance(data, dict) else None
+    if not isinstance(frames, list) or not frames:
+        raise ValueError(f"{pose_file} needs a non-empty 'frames' list, each with a 4x4 'transform_matrix'")
+    paths = [Path(p) for p in images] or [pose_file.parent / f.get("file_path", "") for f in frames]
+    if len(paths) != len(frames):
+        raise ValueError(f"{len(paths)} images but {len(frames)} frames in {pose_file}; give one frame per image, in order")
+    if masks and len(masks) != len(paths):
+        raise ValueError(f"{len(masks)} masks for {len(paths)} images; give a mask for every image or none")
+    rgba, poses, cameras = [], [], []
+    for number, (path, frame) in enumerate(zip(paths, frames)):
+        try:
+            with Image.open(path) as image:
+                array = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
+            if masks:
+                with Image.open(masks[number]) as mask:
+                    mask = mask.convert("L")
+                    if mask.size != (array.shape[1], array.shape[0]):
+                        raise ValueError(f"mask {masks[number]} is {mask.size[0]}x{mask.size[1]}, its image {array.shape[1]}x{array.shape[0]}")
+                    array[..., 3] = np.asarray(mask, dtype=np.float32) / 255.0
+        except (OSError, UnidentifiedImageError) as error:
+            raise ValueError(f"cannot read {path} as an image: {error}") from None
+        matrix = np.asarray(frame.get("transform_matrix"), dtype=np.float32) if isinstance(frame, dict) else None
+        if matrix is None or matrix.shape != (4, 4):
+            raise ValueError(f"{pose_file} frame {number}: 'transform_matrix' must be a 4x4 camera-to-world matrix")
+        rgba.append(array)
+        poses.append(matrix)
+        cameras.append(frame_intrinsics(data, frame, array.shape[1], array.shape[0], f"{pose_file} frame {number}"))
+    if len({a.shape for a in rgba}) != 1:
+        raise ValueError("all input images must have the same size")
+    return torch.from_numpy(np.stack(rgba)), torch.from_numpy(np.stack(poses)), cameras
+
+
+def cmd_invert(args) -> int:
+    """Optimise codes for the input views, then write the NeRF, renders, turntable and mesh."""
+    from tqdm import tqdm
+
+    from model.nerf import config
+    from model.nerf.device import default_device
+    from model.optimize.tto import TTOConfig, invert
+    from model.prior.io import load_prior
+    from model.prior.outputs import write_outputs
+
+    cfg = TTOConfig(steps=args.steps, finetune_steps=args.finetune_steps, rays_per_step=args.rays, init=args.init, seed=args.seed)
+    images, c2w, cameras = read_inputs(args.image, args.mask, Path(args.pose))
+    prior = load_prior(Path(args.run), default_device())
+    log.info("optimising codes for %d view(s) of %dx%d", len(images), images.shape[2], images.shape[1])
+    bar = tqdm(total=cfg.steps + cfg.finetune_steps, desc="invert", unit="step")
+
+    def progress(entry: dict) -> None:
+        bar.update(entry["step"] + 1 - bar.n)
+        bar.set_postfix(phase=entry["phase"], psnr=f"{entry['psnr']:.2f}")
+
+    result = invert(prior.net, prior.scene, images, c2w, cameras, cfg, progress=progress)
+    bar.close()
+    out = Path(args.out)
+    codes = {"shape": result.shape_code.tolist(), "color": result.color_code.tolist(), "init": result.init}
+    extra = {"tto": config.to_dict(cfg), "codes": codes, "prior": str(args.run), "wall_s": result.wall_s,
+             "finetuned": cfg.finetune_steps > 0}
+    log.info("writing renders, turntable and mesh into %s", out)
+    paths = write_outputs(out, result.params, prior.net.cfg.field, result.grid, prior.scene, cameras[0], extra=extra,
+                          mesh_resolution=args.mesh_resolution)
+    (out / "codes.json").write_text(json.dumps(codes, indent=2))
+    (out / "history.json").write_text(json.dumps(result.history, indent=2))
+    final = result.history[-1]
+    print(f"inverted in {result.wall_s:.1f} s from {result.init}: training-view PSNR {final['psnr']:.2f} dB; "
+          f"NeRF {paths['nerf']}, renders {paths['renders']}, turntable {paths['turntable']}, mesh {paths['mesh']}")
+    return 0
+
+
+def register_generalization(eval_sub) -> None:
+    gen = eval_sub.add_parser("generalization", help="NeRFs of unseen test objects from one view (paper Table 1)")
+    gen.add_argument("--run", required=True, help="run folder written by `hypnerf train`")
+    gen.add_argument("--data", required=True, help="the dataset the prior was trained on (its test split is used)")
+    gen.add_argument("--json", required=True, help="where to write the report (a PNG of renders goes beside it)")
+    gen.add_argument("--objects", type=int, default=11)
+    gen.add_argument("--views", type=int, default=1, help="input views per object")
+    gen.add_argument("--steps", type=int, help="TTO steps (default: the TTO default)")
+    gen.add_argument("--finetune-steps", type=int, default=0)
+    gen.add_argument("--fit-steps", type=int, default=1000, help="steps of the single-view fit baseline")
+    gen.add_argument("--denoiser", help="a denoiser folder from `hypnerf train-denoiser` (adds the tto_denoise row)")
+    gen.set_defaults(func=cmd_eval_generalization)
+
+
+def cmd_eval_generalization(args) -> int:
+    from model.cli.main import _write_json
+    from model.eval.generalization import GeneralizationConfig, generalization
+    from model.optimize.tto import TTOConfig
+
+    tto = TTOConfig(finetune_steps=args.finetune_steps, **({"steps": args.steps} if args.steps else {}))
+    cfg = GeneralizationConfig(objects=args.objects, input_views=args.views, tto=tto, fit_steps=args.fit_steps)
+    out = Path(args.json)
+    report = generalization(Path(args.run), Path(args.data), cfg, denoiser=Path(args.denoiser) if args.denoiser else None, out=out)
+    report["command"] = "hypnerf " + " ".join(sys.argv[1:])
+    _write_json(str(out), report)
+    for row, q in report["rows"].items():
+        print(f"{row:16s} {q['psnr']:6.2f} dB full  {q['psnr_fg']:6.2f} dB fg  SSIM {q['ssim']:.3f}  FID {q['fid']:.3f}")
+    print(f"blank-image floor {report['floor_psnr']:.2f} / {report['floor_psnr_fg']:.2f} dB; {report['objects']} objects; renders {out.with_suffix('.png')}")
+    return 0
