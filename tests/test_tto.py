@@ -215,3 +215,47 @@ def test_generalization_table_scores_every_row_above_the_floor_and_draws_renders
     with Image.open(out.with_suffix(".png")) as grid:
         assert grid.size[0] > 0
     assert json.loads(out.read_text())["objects"] == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Poses
+
+
+def test_axis_angle_is_a_rotation_smooth_at_zero():
+    from model.optimize.pose import axis_angle_to_matrix
+
+    w = torch.tensor([[0.0, 0.0, 0.0], [1e-7, 0.0, 0.0], [0.0, 0.0, math.pi / 2]], requires_grad=True)
+    r = axis_angle_to_matrix(w)
+    assert torch.allclose(r[0], torch.eye(3)) and torch.allclose(r[2] @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0]), atol=1e-6)
+    assert torch.allclose(r.transpose(1, 2) @ r, torch.eye(3).expand(3, 3, 3), atol=1e-6)
+    r.sum().backward()
+    assert torch.isfinite(w.grad).all()
+
+
+def test_perturbed_pose_is_off_by_the_angle_asked_for():
+    from model.optimize.pose import perturb_pose, rotation_error_deg
+
+    pose = torch.tensor(look_at(np.array([1.5, -1.0, 0.8])), dtype=torch.float32)
+    turned = perturb_pose(pose, 10.0, torch.Generator().manual_seed(0))
+    assert float(rotation_error_deg(pose, turned)) == pytest.approx(10.0, abs=1e-3)
+
+
+def test_pose_refinement_moves_the_pose_and_stays_finite(prior, unseen):
+    from model.optimize.pose import perturb_pose
+
+    held, _ = unseen
+    view = held.subset([0])
+    rough = perturb_pose(view.c2w[0], 10.0, torch.Generator().manual_seed(1))[None]
+    result = invert(prior.net, prior.scene, view.images, rough, view.cameras, TTOConfig(**{**FAST, "steps": 15}, refine_pose=True))
+    assert _finite(result) and not torch.allclose(result.c2w, rough)
+
+
+def test_unknown_pose_is_searched_then_refined(prior, unseen):
+    held, _ = unseen
+    view = held.subset([0])
+    cfg = TTOConfig(**{**FAST, "steps": 10}, search_azimuths=4, search_elevations=(30.0,), search_codes=2)
+    result = invert(prior.net, prior.scene, view.images, None, view.cameras, cfg)
+    assert _finite(result) and result.c2w.shape == (1, 4, 4)
+    assert float(result.c2w[0, :3, 3].norm()) == pytest.approx(2.0, abs=0.2)
+    with pytest.raises(TTOError, match="one image"):
+        invert(prior.net, prior.scene, held.images[:2], None, held.cameras[:2], cfg)

@@ -27,9 +27,10 @@ import torch
 from model.data.dataset import validate_views
 from model.nerf.fields import Field, FieldParams, world_density
 from model.nerf.occupancy import MaintainedGrid, OccupancyConfig, OccupancyGrid
-from model.nerf.rays import Intrinsics, pixel_rays
+from model.nerf.rays import Intrinsics
 from model.nerf.renderer import RenderConfig, render_rays
 from model.nerf.scene import SceneBox
+from model.optimize.pose import PixelBank, PoseRefinement, candidate_poses
 from model.optimize.step import RayBatch, adam_with_decay, mse_to_psnr, photometric_loss
 from model.prior.codes import generated_grid
 from model.prior.hypernet import HyperNetwork
@@ -56,6 +57,14 @@ class TTOConfig:
     finetune_lr: float = 1e-3
     finetune_pull: float = 1.0
     """Weight of the squared distance of the finetuned parameters to the prior's output (per element, mean)."""
+    refine_pose: bool = False
+    """Optimise each view's pose with the codes (always on when the pose is unknown)."""
+    pose_lr: float = 3e-3
+    search_azimuths: int = 12
+    search_elevations: tuple[float, ...] = (10.0, 30.0, 50.0, 70.0)
+    search_radii: tuple[float, ...] = (2.0,)
+    search_codes: int = 8
+    """Codebook entries (spread over the shapes) each candidate pose of an unknown-pose search is scored with."""
     patience: int = 60
     """Stop when the smoothed loss has not improved by ``min_improvement`` for this many steps (0: never)."""
     min_improvement: float = 1e-3
@@ -90,6 +99,8 @@ class TTOResult:
     """Whether ``should_stop`` ended the run early."""
     init: str
     """Where the codes started: ``given``, ``nearest:<instance>`` or ``mean``."""
+    c2w: torch.Tensor
+    """``[V, 4, 4]`` the poses used at the end (refined, or found by the search)."""
     wall_s: float
 
 
@@ -136,21 +147,12 @@ def codebook(net: HyperNetwork) -> tuple[torch.Tensor, torch.Tensor]:
 # Inputs
 
 
-def input_rays(images: torch.Tensor, c2w: torch.Tensor, cameras: Sequence[Intrinsics], device) -> RayBatch:
-    """All pixels of the input views as world rays with their RGBA targets ``[P, 4]``."""
-    origins, directions = [], []
-    for pose, camera in zip(c2w, cameras):
-        o, d = pixel_rays(pose.to(device), camera)
-        origins.append(o.reshape(-1, 3))
-        directions.append(d.reshape(-1, 3))
-    return RayBatch(torch.cat(origins), torch.cat(directions), images.to(device).reshape(-1, 4))
-
-
-def check_inputs(images: torch.Tensor, c2w: torch.Tensor, cameras: Sequence[Intrinsics], scene: SceneBox) -> None:
+def check_inputs(images: torch.Tensor, c2w: torch.Tensor | None, cameras: Sequence[Intrinsics], scene: SceneBox) -> None:
     """Refuse inputs TTO cannot use, saying why: shapes, non-finite values, intrinsics that do not
-    match the images, cameras inside the scene box, images with no object in them."""
+    match the images, cameras inside the scene box, images with no object in them. ``c2w`` None
+    (unknown poses) skips the pose checks."""
     try:
-        validate_views(images, c2w)
+        validate_views(images, c2w if c2w is not None else torch.eye(4).expand(images.shape[0], 4, 4))
     except ValueError as err:
         raise TTOError(str(err)) from None
     if images.shape[-1] != 4:
@@ -160,6 +162,20 @@ def check_inputs(images: torch.Tensor, c2w: torch.Tensor, cameras: Sequence[Intr
     for i, camera in enumerate(cameras):
         if (camera.height, camera.width) != tuple(images.shape[1:3]):
             raise TTOError(f"image {i} is {images.shape[2]}x{images.shape[1]} but its camera is {camera.width}x{camera.height}")
+    if c2w is not None:
+        check_poses(c2w, scene)
+    alpha = images[..., 3]
+    empty = (alpha.flatten(1).amax(1) < 0.5).nonzero().flatten().tolist()
+    if empty:
+        raise TTOError(f"images {empty} have no object (their masks are empty); give a view with the object in it")
+    rgb_white = (images[..., :3].flatten(1, 2).amin(1) > 0.999).all(-1) & (alpha.flatten(1).amin(1) > 0.999)
+    blank = rgb_white.nonzero().flatten().tolist()
+    if blank:
+        raise TTOError(f"images {blank} are blank white; give a photo of the object (or RGBA with its mask)")
+
+
+def check_poses(c2w: torch.Tensor, scene: SceneBox) -> None:
+    """Camera-to-world matrices ``[V, 4, 4]`` need an orthonormal rotation and a camera outside the scene box."""
     rotation = c2w[:, :3, :3].float()
     eye = torch.eye(3).expand_as(rotation)
     if (rotation.transpose(1, 2) @ rotation - eye).abs().max() > 1e-3:
@@ -169,14 +185,6 @@ def check_inputs(images: torch.Tensor, c2w: torch.Tensor, cameras: Sequence[Intr
     inside = ((centres > lo) & (centres < hi)).all(-1).nonzero().flatten().tolist()
     if inside:
         raise TTOError(f"cameras {inside} are inside the scene box; TTO needs views from outside the object")
-    alpha = images[..., 3]
-    empty = (alpha.flatten(1).amax(1) < 0.5).nonzero().flatten().tolist()
-    if empty:
-        raise TTOError(f"images {empty} have no object (their masks are empty); give a view with the object in it")
-    rgb_white = (images[..., :3].flatten(1, 2).amin(1) > 0.999).all(-1) & (alpha.flatten(1).amin(1) > 0.999)
-    blank = rgb_white.nonzero().flatten().tolist()
-    if blank:
-        raise TTOError(f"images {blank} are blank white; give a photo of the object (or RGBA with its mask)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -204,9 +212,33 @@ def instance_losses(net: HyperNetwork, field_cfg: Field, scene: SceneBox, batch:
     return torch.stack(losses)
 
 
-def _subset(batch: RayBatch, count: int, generator: torch.Generator) -> RayBatch:
-    pick = torch.randint(len(batch), (count,), generator=generator, device=batch.origins.device)
-    return RayBatch(batch.origins[pick], batch.directions[pick], batch.rgba[pick])
+@torch.no_grad()
+def search_pose(net: HyperNetwork, scene: SceneBox, pixels: PixelBank, cfg: TTOConfig, render: RenderConfig,
+                generator: torch.Generator) -> torch.Tensor:
+    """The candidate look-at pose ``[1, 4, 4]`` (``model.optimize.pose.candidate_poses``) whose
+    render, by the best of ``cfg.search_codes`` codebook entries spread over the shapes, is closest
+    to the image on the same few rays."""
+    device = pixels.rgba.device
+    candidates = candidate_poses(cfg.search_azimuths, cfg.search_elevations, cfg.search_radii).to(device)
+    shapes, colors = codebook(net)
+    picks = torch.linspace(0, net.instances - 1, min(cfg.search_codes, net.instances)).round().long().tolist()
+    nerfs = [net.params_from_codes(shapes[i : i + 1], colors[i : i + 1]) for i in picks]
+    white = torch.ones(3, device=device)
+    pixel_pick = torch.randint(pixels.rgba.shape[1], (cfg.init_rays,), generator=generator, device=device)
+    target_rgba = pixels.rgba[0, pixel_pick]
+    target = target_rgba[:, :3] * target_rgba[:, 3:] + (1 - target_rgba[:, 3:])
+    best, best_loss = 0, math.inf
+    for number, pose in enumerate(candidates):
+        directions = (pose[:3, :3] @ pixels.directions[0, pixel_pick][..., None]).squeeze(-1)
+        directions = directions / directions.norm(dim=-1, keepdim=True)
+        origins = pose[:3, 3].expand_as(directions)
+        for params in nerfs:
+            out = render_rays(params, net.cfg.field, origins, directions, render, scene=scene, background=white)
+            loss = float(torch.mean((out["rgb"] - target) ** 2))
+            if loss < best_loss:
+                best, best_loss = number, loss
+    log.info("pose search: candidate %d of %d (loss %.4f)", best, len(candidates), best_loss)
+    return candidates[best : best + 1]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -224,23 +256,25 @@ def invert(
     init: tuple[torch.Tensor, torch.Tensor] | None = None,
     progress: Callable[[dict], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
+    snapshot: Callable[[dict, torch.Tensor, torch.Tensor], None] | None = None,
 ) -> TTOResult:
     """Optimise codes (then optionally the NeRF itself) to reproduce ``images [V, H, W, 4]``
     (straight-alpha RGBA in [0, 1]) seen from ``c2w [V, 4, 4]`` through ``cameras``.
 
+    ``c2w`` None means the pose is unknown: a single image's pose is searched for
+    (:func:`search_pose`) and refined with the codes.
     ``progress`` receives ``{"step", "steps", "phase", "loss", "psnr", "elapsed_s"}`` every
     ``cfg.progress_every`` steps; ``should_stop`` is polled as often and ends the run early
-    (the result so far is returned with ``stopped``).
+    (the result so far is returned with ``stopped``). ``snapshot`` receives the same entry with
+    the current shape and colour codes (for speed-against-error curves).
     """
-    if c2w is None:
-        raise TTOError("TTO needs the pose of each image; unknown poses are not supported yet")
     images = torch.as_tensor(images).float()
-    c2w = torch.as_tensor(c2w).float()
+    c2w = torch.as_tensor(c2w).float() if c2w is not None else None
     check_inputs(images, c2w, cameras, scene)
     device = next(net.parameters()).device
     field_cfg = net.cfg.field
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
-    batch = input_rays(images, c2w, cameras, device)
+    pixels = PixelBank(images, cameras, device)
     has_alpha = bool((images[..., 3] < 1).any())
     start = time.perf_counter()
     total_steps = cfg.steps + cfg.finetune_steps
@@ -249,13 +283,20 @@ def invert(
         p.requires_grad_(False)
     shapes, colors = codebook(net)
     shape_prior, color_prior = CodeGaussian.fit(net.shape_codes.weight), CodeGaussian.fit(colors)
+    coarse = replace(cfg.render, samples_per_ray=cfg.init_samples_per_ray)
+    searched = c2w is None
+    if searched:
+        if len(images) != 1:
+            raise TTOError("a pose search takes one image; give the poses of several views")
+        c2w = search_pose(net, scene, pixels, cfg, coarse, generator)
+    c2w = c2w.to(device)
     if init is not None:
         shape0, color0 = (torch.as_tensor(c, dtype=torch.float32, device=device).reshape(-1) for c in init)
         if shape0.numel() != shapes.shape[1] or color0.numel() != colors.shape[1]:
             raise TTOError(f"the starting codes must have {shapes.shape[1]} + {colors.shape[1]} values")
         started = "given"
     elif cfg.init == "nearest":
-        losses = instance_losses(net, field_cfg, scene, _subset(batch, cfg.init_rays, generator), replace(cfg.render, samples_per_ray=cfg.init_samples_per_ray))
+        losses = instance_losses(net, field_cfg, scene, pixels.sample(cfg.init_rays, c2w, generator), coarse)
         best = int(torch.argmin(losses))
         shape0, color0 = shapes[best], colors[best]
         started = f"nearest:{best}"
@@ -264,6 +305,8 @@ def invert(
         started = "mean"
     shape = shape0.detach().clone().requires_grad_(True)
     color = color0.detach().clone().requires_grad_(True)
+    pose = PoseRefinement(c2w)
+    refine = cfg.refine_pose or searched
 
     with torch.no_grad():
         first = net.params_from_codes(shape[None], color[None])
@@ -281,14 +324,18 @@ def invert(
             progress(entry)
         return should_stop is not None and should_stop()
 
-    # Phase 1: the codes
-    optimizer, scheduler = adam_with_decay([shape, color], lr=cfg.lr, steps=cfg.steps, final_lr_factor=cfg.final_lr_factor)
+    # Phase 1: the codes (and the poses)
+    groups = [{"params": [shape, color], "lr": cfg.lr}]
+    if refine:
+        groups.append({"params": list(pose.parameters()), "lr": cfg.pose_lr})
+    optimizer, scheduler = adam_with_decay(groups, lr=cfg.lr, steps=cfg.steps, final_lr_factor=cfg.final_lr_factor)
     plateau = _Plateau(cfg.patience, cfg.min_improvement)
-    step = 0
     for step in range(cfg.steps):
         params = net.params_from_codes(shape[None], color[None])
         occupancy.step(step, world_density({k: v.detach() for k, v in params.items()}, field_cfg, scene))
-        mse, _ = _render_loss(params, field_cfg, _subset(batch, cfg.rays_per_step, generator), cfg.render, scene, occupancy.grid, has_alpha, generator)
+        poses = pose() if refine else c2w
+        batch = pixels.sample(cfg.rays_per_step, poses, generator)
+        mse, _ = _render_loss(params, field_cfg, batch, cfg.render, scene, occupancy.grid, has_alpha, generator)
         penalty = shape_prior.distance2(shape) + color_prior.distance2(color)
         loss = mse + cfg.code_prior_weight * penalty
         optimizer.zero_grad(set_to_none=True)
@@ -298,7 +345,10 @@ def invert(
         if not torch.isfinite(loss):
             raise TTOError("the optimisation diverged (non-finite loss); try a smaller lr")
         if step % cfg.progress_every == 0 or step == cfg.steps - 1:
-            if report(step, "codes", loss.item(), mse.item()):
+            stop = report(step, "codes", loss.item(), mse.item())
+            if snapshot is not None:
+                snapshot(history[-1], shape.detach().clone(), color.detach().clone())
+            if stop:
                 stopped = True
                 break
         if plateau.done(mse.item()):
@@ -307,26 +357,28 @@ def invert(
 
     with torch.no_grad():
         params = {k: v.detach() for k, v in net.params_from_codes(shape[None], color[None]).items()}
+        final_poses = (pose() if refine else c2w).detach()
     grid = occupancy.update(world_density(params, field_cfg, scene))
 
     # Phase 2: the NeRF's own parameters, pulled towards the prior's output
     if cfg.finetune_steps and not stopped:
-        params, grid, stopped = _finetune(params, field_cfg, scene, batch, cfg, occupancy, has_alpha, generator, lambda s, l, m: report(cfg.steps + s, "finetune", l, m))
+        params, grid, stopped = _finetune(params, field_cfg, scene, pixels, final_poses, cfg, occupancy, has_alpha, generator,
+                                          lambda s, l, m: report(cfg.steps + s, "finetune", l, m))
     return TTOResult(
         shape_code=shape.detach().cpu(), color_code=color.detach().cpu(), params={k: v.detach().cpu() for k, v in params.items()},
-        grid=grid.to("cpu"), history=history, stopped=stopped, init=started, wall_s=time.perf_counter() - start,
+        grid=grid.to("cpu"), history=history, stopped=stopped, init=started, c2w=final_poses.cpu(), wall_s=time.perf_counter() - start,
     )
 
 
-def _finetune(prior_params: FieldParams, field_cfg: Field, scene: SceneBox, batch: RayBatch, cfg: TTOConfig, occupancy: MaintainedGrid,
-              has_alpha: bool, generator: torch.Generator, report: Callable[[int, float, float], bool]):
+def _finetune(prior_params: FieldParams, field_cfg: Field, scene: SceneBox, pixels: PixelBank, c2w: torch.Tensor, cfg: TTOConfig,
+              occupancy: MaintainedGrid, has_alpha: bool, generator: torch.Generator, report: Callable[[int, float, float], bool]):
     params = {k: v.clone().requires_grad_(True) for k, v in prior_params.items()}
     optimizer, scheduler = adam_with_decay(list(params.values()), lr=cfg.finetune_lr, steps=cfg.finetune_steps, final_lr_factor=cfg.final_lr_factor)
     count = sum(v.numel() for v in params.values())
     stopped = False
     for step in range(cfg.finetune_steps):
         occupancy.step(step, world_density({k: v.detach() for k, v in params.items()}, field_cfg, scene))
-        mse, _ = _render_loss(params, field_cfg, _subset(batch, cfg.rays_per_step, generator), cfg.render, scene, occupancy.grid, has_alpha, generator)
+        mse, _ = _render_loss(params, field_cfg, pixels.sample(cfg.rays_per_step, c2w, generator), cfg.render, scene, occupancy.grid, has_alpha, generator)
         pull = sum(((params[k] - prior_params[k]) ** 2).sum() for k in params) / count
         loss = mse + cfg.finetune_pull * pull
         optimizer.zero_grad(set_to_none=True)
