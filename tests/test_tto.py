@@ -259,3 +259,27 @@ def test_unknown_pose_is_searched_then_refined(prior, unseen):
     assert float(result.c2w[0, :3, 3].norm()) == pytest.approx(2.0, abs=0.2)
     with pytest.raises(TTOError, match="one image"):
         invert(prior.net, prior.scene, held.images[:2], None, held.cameras[:2], cfg)
+
+
+def test_a_mirrored_view_sees_the_mirrored_point_at_the_flipped_pixel(prior):
+    from model.nerf.rays import project
+    from model.optimize.tto import with_mirrored_views
+
+    camera = Intrinsics(20, 16, 18.0, 18.0, 9.0, 8.5)
+    pose = torch.tensor(look_at(np.array([1.3, -1.2, 0.7])), dtype=torch.float32)[None]
+    rgba = torch.rand(1, 16, 20, 4)
+    images, c2w, cameras = with_mirrored_views(rgba, pose, [camera], prior.scene)
+    assert images.shape[0] == 2 and torch.equal(images[1], rgba[0].flip(1))
+    rotation = c2w[1, :3, :3]
+    assert torch.allclose(rotation.T @ rotation, torch.eye(3), atol=1e-6) and float(torch.det(rotation)) == pytest.approx(1.0, abs=1e-5)
+    points = torch.tensor([[0.1, 0.2, -0.1], [-0.3, 0.05, 0.2]])
+    mirrored = points * torch.tensor([-1.0, 1.0, 1.0])
+
+    def pixels(c2w_one, cam, pts):
+        local = (pts - c2w_one[:3, 3]) @ c2w_one[:3, :3]
+        x, y, _ = project(local, cam)
+        return x, y
+
+    x, y = pixels(c2w[0], cameras[0], points)
+    xm, ym = pixels(c2w[1], cameras[1], mirrored)
+    assert torch.allclose(xm, camera.width - x, atol=1e-4) and torch.allclose(ym, y, atol=1e-4)

@@ -124,7 +124,7 @@ def register_generalization(eval_sub) -> None:
     gen.add_argument("--views", type=int, default=1, help="input views per object")
     gen.add_argument("--steps", type=int, help="TTO steps (default: the TTO default)")
     gen.add_argument("--finetune-steps", type=int, default=0)
-    gen.add_argument("--fit-steps", type=int, default=1000, help="steps of the single-view fit baseline")
+    gen.add_argument("--fit-steps", type=int, default=500, help="steps of the single-view fit baseline")
     gen.add_argument("--denoiser", help="a denoiser folder from `hypnerf train-denoiser` (adds the tto_denoise row)")
     gen.set_defaults(func=cmd_eval_generalization)
 

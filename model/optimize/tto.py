@@ -57,6 +57,9 @@ class TTOConfig:
     finetune_lr: float = 1e-3
     finetune_pull: float = 1.0
     """Weight of the squared distance of the finetuned parameters to the prior's output (per element, mean)."""
+    mirror: bool = False
+    """Add each view mirrored across the scene box's x = centre plane, a virtual second view of a
+    left-right symmetric object (the datasets' furniture faces -Y, so its symmetry plane is x = 0)."""
     refine_pose: bool = False
     """Optimise each view's pose with the codes (always on when the pose is unknown)."""
     pose_lr: float = 3e-3
@@ -212,6 +215,20 @@ def instance_losses(net: HyperNetwork, field_cfg: Field, scene: SceneBox, batch:
     return torch.stack(losses)
 
 
+def with_mirrored_views(images: torch.Tensor, c2w: torch.Tensor, cameras: Sequence[Intrinsics], scene: SceneBox):
+    """The views plus each one mirrored across the plane x = the scene box's centre: the image
+    flipped left-right, seen by the mirrored camera (a reflection of its pose, its x axis flipped
+    to stay right-handed, and its principal point mirrored)."""
+    lo, hi = scene.tensors(c2w.device)
+    centre = float((lo[0] + hi[0]) / 2)
+    flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0], device=c2w.device))
+    mirrored = c2w.clone()
+    mirrored[:, :3, :3] = flip @ c2w[:, :3, :3] @ flip
+    mirrored[:, 0, 3] = 2 * centre - c2w[:, 0, 3]
+    flipped = [Intrinsics(c.width, c.height, c.fx, c.fy, c.width - c.cx, c.cy) for c in cameras]
+    return torch.cat([images, images.flip(2)]), torch.cat([c2w, mirrored]), [*cameras, *flipped]
+
+
 @torch.no_grad()
 def search_pose(net: HyperNetwork, scene: SceneBox, pixels: PixelBank, cfg: TTOConfig, render: RenderConfig,
                 generator: torch.Generator) -> torch.Tensor:
@@ -274,6 +291,8 @@ def invert(
     device = next(net.parameters()).device
     field_cfg = net.cfg.field
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
+    if cfg.mirror and c2w is not None:
+        images, c2w, cameras = with_mirrored_views(images, c2w, cameras, scene)
     pixels = PixelBank(images, cameras, device)
     has_alpha = bool((images[..., 3] < 1).any())
     start = time.perf_counter()

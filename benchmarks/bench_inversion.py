@@ -1,0 +1,191 @@
+"""Inversion on unseen test-split chairs: the generalisation table (paper Table 1), PSNR against the
+number of input views, TTO's speed against error, and poses (refinement of a wrong pose, search
+for an unknown one).
+
+Each stage writes ``benchmarks/results/<stage>.json`` (and a PNG) and is skipped when that file is
+there. Plots are drawn with **matplotlib** (Agg backend). Every figure is at the dataset's 128x128
+and scored with ``model.eval.metrics.image_quality`` (full and foreground PSNR, blank floors).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.common import RESULTS, ROOT, hypnerf, write_result
+
+RUN = ROOT / "runs" / "prior-cpu"
+DATA = ROOT / "data" / "sh3d-chair-variants"
+DENOISER = ROOT / "runs" / "denoiser"
+
+
+def generalization(objects: int) -> None:
+    if (RESULTS / "generalization.json").is_file():
+        return
+    args = ["eval", "generalization", "--run", str(RUN), "--data", str(DATA), "--json", str(RESULTS / "generalization.json"),
+            "--objects", str(objects)]
+    if (DENOISER / "denoiser.safetensors").is_file():
+        args += ["--denoiser", str(DENOISER)]
+    hypnerf(*args)
+
+
+def _evaluation_subset(views, count: int):
+    step = max(len(views.files) // count, 1)
+    return views.subset(list(range(0, len(views.files), step))[:count])
+
+
+def multiview(objects: int) -> None:
+    """Full and foreground PSNR of TTO against the number of input views (the paper's appendix figure)."""
+    if (RESULTS / "multiview.json").is_file():
+        return
+    from model.eval.generalization import GeneralizationConfig
+    from model.eval.generalization import generalization as table
+
+    rows = {}
+    for views in (1, 3, 5, 10):
+        cfg = GeneralizationConfig(objects=objects, input_views=views, rows=("tto",), grid_rows=0)
+        report = table(RUN, DATA, cfg)
+        rows[str(views)] = {**report["rows"]["tto"], "tto_s": report["tto_s"]}
+        print(f"{views} views: {rows[str(views)]['psnr']:.2f} / {rows[str(views)]['psnr_fg']:.2f} dB", flush=True)
+    write_result("multiview", {"rows": rows, "objects": objects, "floor_psnr": report["floor_psnr"], "floor_psnr_fg": report["floor_psnr_fg"],
+                               "command": "python -m benchmarks.bench_inversion --stage multiview"})
+    _plot(RESULTS / "multiview.png", [int(k) for k in rows], {"full": [r["psnr"] for r in rows.values()], "foreground": [r["psnr_fg"] for r in rows.values()]},
+          "input views", "PSNR (dB)", "TTO on unseen chairs against the number of input views")
+
+
+def _plot(path: Path, x, series: dict, xlabel: str, ylabel: str, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for name, ys in series.items():
+        ax.plot(x, ys, marker="o", label=name)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def speed(objects: int, eval_views: int = 12) -> None:
+    """Held-out foreground PSNR against TTO wall time: codes snapshotted during the run are scored afterwards
+    (scoring is not part of the timed run)."""
+    if (RESULTS / "tto_speed.json").is_file():
+        return
+    from model.data.dataset import load_views
+    from model.eval.field import render_views
+    from model.eval.generalization import test_objects
+    from model.eval.metrics import image_quality
+    from model.nerf.renderer import RenderConfig
+    from model.optimize.tto import TTOConfig, invert
+    from model.prior.codes import generated_grid
+    from model.prior.io import load_prior
+
+    prior = load_prior(RUN)
+    field = prior.net.cfg.field
+    cfg = TTOConfig(patience=0)
+    curves = []
+    for object_id in test_objects(DATA, objects):
+        held = load_views(DATA / object_id, "test").subset([0])
+        evaluation = _evaluation_subset(load_views(DATA / object_id, "train"), eval_views)
+        snaps = []
+        result = invert(prior.net, prior.scene, held.images, held.c2w, held.cameras, cfg, snapshot=lambda e, s, c: snaps.append((e, s, c)))
+        points = []
+        for entry, shape, color in snaps:
+            with torch.no_grad():
+                params = prior.net.params_from_codes(shape[None], color[None])
+            grid = generated_grid(params, field, prior.scene)
+            rgb, opacity, _, _ = render_views(params, field, evaluation, RenderConfig(), grid, prior.scene)
+            q = image_quality(rgb, evaluation.images, opacity)
+            points.append({"step": entry["step"], "elapsed_s": entry["elapsed_s"], "psnr": q["psnr"], "psnr_fg": q["psnr_fg"]})
+        curves.append({"id": object_id, "points": points, "wall_s": result.wall_s,
+                       "ms_per_step": 1000 * (points[-1]["elapsed_s"] - points[0]["elapsed_s"]) / max(points[-1]["step"] - points[0]["step"], 1)})
+        print(object_id, points[0]["psnr_fg"], points[-1]["psnr_fg"], flush=True)
+    steps = [p["step"] for p in curves[0]["points"]]
+    mean_fg = [float(np.mean([c["points"][i]["psnr_fg"] for c in curves])) for i in range(len(steps))]
+    mean_t = [float(np.mean([c["points"][i]["elapsed_s"] for c in curves])) for i in range(len(steps))]
+    gain = mean_fg[-1] - mean_fg[0]
+    reach = next((t for t, v in zip(mean_t, mean_fg) if v - mean_fg[0] >= 0.9 * gain), mean_t[-1]) if gain > 0 else None
+    write_result("tto_speed", {
+        "curve": [{"step": s, "elapsed_s": t, "psnr_fg": v} for s, t, v in zip(steps, mean_t, mean_fg)],
+        "gain_db": gain, "time_to_90pct_gain_s": reach, "target_s": 30.0, "objects": len(curves),
+        "ms_per_step": float(np.mean([c["ms_per_step"] for c in curves])), "rays_per_step": cfg.rays_per_step,
+        "evaluation_views": eval_views, "per_object": curves, "command": "python -m benchmarks.bench_inversion --stage speed",
+    })
+    _plot(RESULTS / "tto_speed.png", mean_t, {"foreground PSNR": mean_fg}, "TTO wall time (s, 2 cores)", "held-out PSNR (dB)",
+          f"TTO speed against error ({len(curves)} unseen chairs)")
+
+
+def poses(objects: int, eval_views: int = 12) -> None:
+    """PSNR recovered by refining a wrong pose (5, 10, 20 degrees), and the unknown-pose search's success."""
+    if (RESULTS / "poses.json").is_file():
+        return
+    from model.data.dataset import load_views
+    from model.eval.field import render_views
+    from model.eval.generalization import test_objects
+    from model.eval.metrics import image_quality
+    from model.nerf.renderer import RenderConfig
+    from model.optimize.pose import perturb_pose, rotation_error_deg
+    from model.optimize.tto import TTOConfig, invert
+    from model.prior.io import load_prior
+
+    prior = load_prior(RUN)
+    field = prior.net.cfg.field
+    rows: dict[str, list] = {}
+    generator = torch.Generator().manual_seed(0)
+
+    def score(result, evaluation) -> dict:
+        rgb, opacity, _, _ = render_views(result.params, field, evaluation, RenderConfig(), result.grid, prior.scene)
+        return image_quality(rgb, evaluation.images, opacity)
+
+    for object_id in test_objects(DATA, objects):
+        held = load_views(DATA / object_id, "test").subset([0])
+        evaluation = _evaluation_subset(load_views(DATA / object_id, "train"), eval_views)
+        exact = invert(prior.net, prior.scene, held.images, held.c2w, held.cameras, TTOConfig())
+        rows.setdefault("exact", []).append(score(exact, evaluation))
+        for degrees in (5, 10, 20):
+            wrong = perturb_pose(held.c2w[0], degrees, generator, translation=0.02 * degrees / 10)[None]
+            for refine in (False, True):
+                result = invert(prior.net, prior.scene, held.images, wrong, held.cameras, TTOConfig(refine_pose=refine))
+                q = score(result, evaluation)
+                q["final_error_deg"] = float(rotation_error_deg(result.c2w[0], held.c2w[0]))
+                rows.setdefault(f"{degrees}deg_{'refined' if refine else 'fixed'}", []).append(q)
+        unknown = invert(prior.net, prior.scene, held.images, None, held.cameras, TTOConfig())
+        q = score(unknown, evaluation)
+        q["final_error_deg"] = float(rotation_error_deg(unknown.c2w[0], held.c2w[0]))
+        rows.setdefault("unknown", []).append(q)
+        print(object_id, {k: round(v[-1]["psnr_fg"], 2) for k, v in rows.items()}, flush=True)
+    summary = {k: {m: float(np.mean([r[m] for r in v])) for m in v[0]} for k, v in rows.items()}
+    summary["unknown"]["success_rate"] = float(np.mean([r["final_error_deg"] < 15.0 for r in rows["unknown"]]))
+    write_result("poses", {"rows": summary, "objects": objects, "evaluation_views": eval_views, "per_object": rows,
+                           "command": "python -m benchmarks.bench_inversion --stage poses"})
+
+
+STAGES = {"generalization": generalization, "multiview": multiview, "speed": speed, "poses": poses}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--stage", choices=[*STAGES, "all"], default="all")
+    parser.add_argument("--objects", type=int, help="test objects per stage (default: 11 for the table, 4 for the rest)")
+    args = parser.parse_args()
+    torch.set_num_threads(2)
+    for name, stage in STAGES.items():
+        if args.stage in (name, "all"):
+            start = time.perf_counter()
+            stage(args.objects or (11 if name == "generalization" else 4))
+            print(f"stage {name}: {time.perf_counter() - start:.0f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
