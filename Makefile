@@ -10,22 +10,46 @@ export MALLOC_MMAP_THRESHOLD_ := 34359738368
 export MALLOC_TRIM_THRESHOLD_ := 34359738368
 export THP_MEM_ALLOC_ENABLE := 1
 
-.PHONY: install run demo test bench bench-prior data clean
+.PHONY: install run bundle demo test bench bench-prior bench-models data clean
 
 install: $(STAMP)
 
 # torch is pinned and installed first on its own, so pip takes the local CPU wheel; the project is
 # installed without build isolation (an isolated build would pull a multi-GB CUDA torch); then the
-# fused hash-grid kernel is compiled once into its on-disk cache.
-$(STAMP): pyproject.toml
+# fused hash-grid kernel is compiled once into its on-disk cache. The client SDK (clients/python) is
+# installed editable beside it; its dependencies (httpx, pydantic) are the project's already.
+$(STAMP): pyproject.toml clients/python/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip setuptools wheel
 	$(BIN)/pip install --quiet torch==2.13.0
 	$(BIN)/pip install --quiet --no-build-isolation -e '.[test]'
+	$(BIN)/pip install --quiet --no-deps --no-build-isolation -e clients/python
 	$(BIN)/python -m model.nerf.encodings.kernels
 	touch $(STAMP)
 
-run: demo
+# Serve the committed demo bundle on 127.0.0.1:8000 (HYPNERF_PORT, HYPNERF_HOST and the other
+# HYPNERF_* settings apply; see service/README.md). Loading checks every file's sha256 against the
+# manifest and refuses a damaged bundle; `hypnerf export --verify BUNDLE` also checks ONNX parity.
+run: install
+	$(BIN)/hypnerf serve --bundle $(BUNDLE)
+
+BUNDLE ?= bundles/chair-demo
+SH3D := data/sh3d-chair-variants
+PRIOR := runs/prior-cpu
+
+# Rebuild the demo bundle from scratch on the project's own trainer: the Sweet Home 3D chairs with
+# colour variants (about 5 min; needs `apt-get update` once for the furniture package), the prior
+# (20000 steps, 64 min on 2 cores; resumes), the query network (embeds 24 renders per instance,
+# 10-25 min), the denoiser (3000 steps, about 12 min), then the export (15 s). Steps already done
+# are skipped. Remove runs/ and data/ to start over.
+bundle: install
+	test -f $(SH3D)/index.json || $(BIN)/hypnerf data import-sh3d --out $(SH3D) --category chair --variants 4 --views 91 --res 128
+	test -f $(PRIOR)/hypernet.safetensors || $(BIN)/hypnerf train --data $(SH3D) --out $(PRIOR) --preset cpu --steps 20000 \
+		--objects-per-step 8 --rays 4096 --validate-every 1000 --checkpoint-every 1000 $$(test -f $(PRIOR)/checkpoint.pt && echo --resume)
+	test -f runs/query/cpu/query.safetensors || OMP_NUM_THREADS=1 $(BIN)/hypnerf train-query --run $(PRIOR) --data $(SH3D) --out runs/query/cpu --views 24
+	test -f runs/denoise/denoiser/denoiser.safetensors || $(BIN)/hypnerf train-denoiser --run $(PRIOR) --data $(SH3D) --out runs/denoise/denoiser --steps 3000
+	rm -rf $(BUNDLE)
+	$(BIN)/hypnerf export --run $(PRIOR) --out $(BUNDLE) --data $(SH3D) --query runs/query/cpu --denoiser runs/denoise/denoiser
 
 demo: install
 	$(BIN)/hypnerf demo --out runs/demo
@@ -45,6 +69,18 @@ bench-prior: install
 	$(BIN)/pip install --quiet 'matplotlib>=3.8'
 	$(BIN)/python -m benchmarks.bench_prior
 	$(BIN)/python -m benchmarks.bench_presets
+	$(BIN)/python -m benchmarks.report
+
+# What runs on the trained prior (about two hours on 2 cores; each stage is skipped when its result
+# exists): inversion (generalisation table, views, speed, poses), the query network, the denoiser,
+# and the service's latency on the demo bundle. One thread each: oversubscribed cores run torch
+# many times slower.
+bench-models: install
+	$(BIN)/pip install --quiet 'matplotlib>=3.8'
+	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.bench_inversion
+	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.bench_query
+	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.bench_denoise
+	$(BIN)/python -m benchmarks.bench_service --bundle $(BUNDLE)
 	$(BIN)/python -m benchmarks.report
 
 data: install

@@ -21,7 +21,7 @@ from benchmarks.common import RESULTS, ROOT, hypnerf, write_result
 
 RUN = ROOT / "runs" / "prior-cpu"
 DATA = ROOT / "data" / "sh3d-chair-variants"
-DENOISER = ROOT / "runs" / "denoiser"
+DENOISER = ROOT / "runs" / "denoise" / "denoiser"
 
 
 def generalization(objects: int) -> None:
@@ -179,7 +179,6 @@ def main() -> None:
     parser.add_argument("--stage", choices=[*STAGES, "all"], default="all")
     parser.add_argument("--objects", type=int, help="test objects per stage (default: 11 for the table, 4 for the rest)")
     args = parser.parse_args()
-    torch.set_num_threads(2)
     for name, stage in STAGES.items():
         if args.stage in (name, "all"):
             start = time.perf_counter()

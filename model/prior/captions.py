@@ -1,0 +1,128 @@
+"""Captions and paraphrases of an instance from its attributes, and held-out prompts.
+
+An instance's attributes are read from its dataset entry: its main colour (the first palette
+colour its caption names: captions are built from the mesh's dominant colour, see
+``model.data.colours``), its noun (the catalogue name, e.g. "winchester armchair", else the
+category) and its coarse type (armchair, stool, lounge chair, folding chair, high chair, chair),
+which the evaluation scores text-to-NeRF against.
+
+Training text is the dataset caption plus paraphrases from :data:`TRAIN_TEMPLATES` with the noun
+and with the type. Held-out prompts use other templates (:data:`HELD_OUT_TEMPLATES`), so an
+evaluation prompt is never a training sentence, and optionally colour words never seen in
+training (:data:`COLOUR_SYNONYMS`).
+"""
+
+from __future__ import annotations
+
+import random
+import re
+from dataclasses import dataclass
+
+from model.data.colours import PALETTE, article
+
+# (keyword in the noun, type), first match wins
+TYPE_RULES = (
+    ("stool", "stool"),
+    ("armchair", "armchair"),
+    ("high chair", "high chair"),
+    ("folding", "folding chair"),
+    ("deck", "lounge chair"),
+    ("beach", "lounge chair"),
+    ("relax", "lounge chair"),
+)
+DEFAULT_TYPE = "chair"
+
+TRAIN_TEMPLATES = (
+    "{a} {colour} {noun}",
+    "{colour} {noun}",
+    "{a_noun} {noun} in {colour}",
+    "a {colour} coloured {noun}",
+    "the {noun} is {colour}",
+    "{a_noun} {noun}",
+    "{a_noun} {noun}, {colour}",
+)
+HELD_OUT_TEMPLATES = (
+    "a photo of {a} {colour} {noun}",
+    "I would like {a_noun} {noun} painted {colour}",
+    "show me a {colour} {noun} for my living room",
+    "a 3d model of {a} {colour} {noun}",
+    "render {a} {colour} {noun}",
+)
+# colour words that no training caption uses (none contains a palette name), for held-out prompts
+COLOUR_SYNONYMS = {
+    "red": ("crimson", "scarlet"),
+    "orange": ("tangerine", "amber"),
+    "yellow": ("mustard", "lemon"),
+    "green": ("emerald", "jade"),
+    "teal": ("turquoise", "petrol"),
+    "blue": ("navy", "cobalt"),
+    "purple": ("violet", "plum"),
+    "pink": ("rose", "blush"),
+    "brown": ("chocolate", "walnut"),
+    "beige": ("cream", "sand"),
+    "black": ("jet", "ebony"),
+    "white": ("ivory", "snow"),
+    "grey": ("gray", "ash"),
+}
+# type words for held-out prompts, one per type (the training nouns are catalogue names)
+TYPE_WORDS = {
+    "armchair": ("armchair", "arm chair"),
+    "stool": ("stool", "backless stool"),
+    "lounge chair": ("lounge chair", "deck chair"),
+    "folding chair": ("folding chair",),
+    "high chair": ("high chair",),
+    "chair": ("chair", "dining chair"),
+}
+
+
+@dataclass(frozen=True)
+class Attributes:
+    """What captions say about an instance: main colour (a palette name or None), noun and type."""
+
+    colour: str | None
+    noun: str
+    kind: str
+
+
+def object_type(noun: str) -> str:
+    """The coarse type of a catalogue noun (``"Bar stool"`` -> ``"stool"``)."""
+    lowered = noun.lower()
+    return next((kind for word, kind in TYPE_RULES if word in lowered), DEFAULT_TYPE)
+
+
+def caption_colour(caption: str) -> str | None:
+    """The first palette colour a caption names, if any."""
+    for word in re.findall(r"[a-z]+", caption.lower()):
+        if word in PALETTE:
+            return word
+    return None
+
+
+def attributes(entry: dict) -> Attributes:
+    """Attributes from an index entry (``caption``, ``category``, optional ``name``; for
+    procedural chairs the ``attributes`` record says whether it has arms)."""
+    noun = str(entry.get("name") or entry.get("category") or "object").lower()
+    kind = object_type(noun)
+    spec = entry.get("attributes")
+    if isinstance(spec, dict) and spec.get("arms") and kind == DEFAULT_TYPE:
+        kind = "armchair"
+    return Attributes(caption_colour(str(entry.get("caption", ""))), noun, kind)
+
+
+def training_captions(caption: str, attrs: Attributes) -> list[str]:
+    """The dataset caption and its paraphrases with the noun and with the coarse type."""
+    texts = [caption]
+    for noun in dict.fromkeys((attrs.noun, attrs.kind)):
+        for template in TRAIN_TEMPLATES:
+            if attrs.colour is None and "{colour}" in template:
+                continue
+            texts.append(template.format(a=article(attrs.colour or ""), colour=attrs.colour, noun=noun, a_noun=article(noun)))
+    return list(dict.fromkeys(texts))
+
+
+def held_out_prompt(colour: str, kind: str, rng: random.Random, synonym: bool = False) -> str:
+    """A prompt for ``colour`` and ``kind`` with a held-out template, and with ``synonym`` a colour
+    word no training caption uses."""
+    colour_word = rng.choice(COLOUR_SYNONYMS[colour]) if synonym else colour
+    noun = rng.choice(TYPE_WORDS.get(kind, (kind,)))
+    return rng.choice(HELD_OUT_TEMPLATES).format(a=article(colour_word), colour=colour_word, noun=noun, a_noun=article(noun))

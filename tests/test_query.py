@@ -1,0 +1,381 @@
+"""The query network and what uses it: embedders loaded offline from their packages, the joint
+embedding and its file format, retrieval, codes, sampling, captions, segmentation, and the
+commands on the tiny prior."""
+
+from __future__ import annotations
+
+import json
+import random
+
+import numpy as np
+import pytest
+import torch
+
+from model.prior.captions import HELD_OUT_TEMPLATES, attributes, held_out_prompt, object_type, training_captions
+from model.prior.query import (
+    QueryConfig,
+    QueryNetwork,
+    InputSlot,
+    instance_bank,
+    load_query,
+    nearest_instances,
+    retrieve,
+    save_query,
+    snap_codes,
+)
+from model.prior.sampling import CodeDensity, DensityConfig, interpolate, nearest_code_distance
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("HYPNERF_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+
+
+def _net(seed: int = 0) -> QueryNetwork:
+    torch.manual_seed(seed)
+    slots = [InputSlot("img", ("image",), 6, 0, "v1"), InputSlot("txt", ("text",), 4, 6, "v1")]
+    return QueryNetwork(QueryConfig(hidden=16, layers=1, dropout=0.0, head="regression"), slots, shape_dim=3, color_dim=2, meta={"embedders": ["img", "txt"]})
+
+
+# ---------------------------------------------------------------------------------------------
+# Embedders (real packaged weights, no network)
+
+
+def test_efficientnet_lite0_loads_its_packaged_weights_and_sees_a_chair():
+    from model.data.cameras import look_at, spherical_direction
+    from model.data.meshes import normalise
+    from model.data.raycast import render_views
+    from model.data.synth import chair_mesh, sample_spec
+    from model.prior.embedders import ImageEmbedder
+
+    embedder = ImageEmbedder()
+    mesh = normalise(chair_mesh(sample_spec(np.random.default_rng([5, 0]))))
+    image = torch.from_numpy(render_views(mesh, look_at(2.0 * spherical_direction(25, -60))[None], 96, 96, 96.0)).float() / 255.0
+    top5 = embedder.classify(image)[0].topk(5).indices.tolist()
+    assert 559 in top5  # ImageNet "folding chair": wrong padding, normalisation or weights lose it
+    features = embedder.embed(torch.cat([image, image.flip(2)]))
+    assert features.shape == (2, 1280) and torch.allclose(features.norm(dim=1), torch.ones(2), atol=1e-5)
+    assert float(features[0] @ features[1]) > 0.8  # a mirrored view is the same object
+
+
+def test_same_padding_matches_tensorflow_output_sizes():
+    from model.prior.embedders import SameConv2d
+
+    conv = SameConv2d(1, 1, 3, stride=2, bias=False)
+    assert conv(torch.zeros(1, 1, 7, 8)).shape[-2:] == (4, 4)
+    assert SameConv2d(1, 1, 5, stride=1, bias=False)(torch.zeros(1, 1, 9, 9)).shape[-2:] == (9, 9)
+
+
+def test_minilm_loads_offline_and_ranks_paraphrases():
+    from model.prior.embedders import TextEmbedder
+
+    embedder = TextEmbedder()
+    red, crimson, blue = embedder.embed(["a red armchair", "a crimson armchair", "a blue stool"])
+    assert torch.allclose(red.norm(), torch.tensor(1.0), atol=1e-5)
+    assert float(red @ crimson) > float(red @ blue)
+    with pytest.raises(ValueError, match="prompt is empty"):
+        embedder.embed(["   "])
+
+
+def test_clip_without_local_weights_says_what_to_do(monkeypatch, tmp_path):
+    from model.prior.embedders import CLIP_WEIGHTS_ENV, EmbedderError, load_embedder
+
+    monkeypatch.delenv(CLIP_WEIGHTS_ENV, raising=False)
+    with pytest.raises(EmbedderError, match="nothing is downloaded"):
+        load_embedder("clip")
+    with pytest.raises(EmbedderError, match="do not exist"):
+        load_embedder("clip", clip_weights=tmp_path / "missing.bin")
+    with pytest.raises(EmbedderError, match="unknown embedder"):
+        load_embedder("resnet")
+
+
+def test_object_crop_centres_the_object_and_rejects_an_empty_mask():
+    from model.prior.embedders import EmbedderError, object_crop, prepare_images
+
+    rgba = torch.zeros(40, 60, 4)
+    rgba[10:20, 30:50] = torch.tensor([1.0, 0.0, 0.0, 1.0])
+    crop = object_crop(rgba)
+    assert crop.shape[0] == crop.shape[1] and crop.shape[0] >= 20
+    assert float(crop[..., 3].mean()) > 0.2  # the object fills the crop, not a corner of it
+    prepared = prepare_images(rgba[None], 32)
+    assert prepared.shape == (1, 3, 32, 32) and float(prepared.min()) >= 0.0
+    assert torch.allclose(object_crop(torch.ones(5, 5, 4)), torch.ones(5, 5, 4))  # no mask: the whole image
+    with pytest.raises(EmbedderError, match="mask\\) is empty"):
+        object_crop(torch.zeros(8, 8, 4))
+    with pytest.raises(EmbedderError, match="NaN"):
+        prepare_images(torch.full((1, 4, 4, 4), float("nan")), 8)
+
+
+def test_embeddings_are_cached_by_what_changes_them(tmp_path, chairs):
+    from model.prior.embedding_cache import view_embeddings
+
+    class Counting:
+        name, dim, modalities = "count", 2, ("image",)
+
+        def __init__(self, version):
+            self.calls, self._version = 0, version
+
+        def version(self):
+            return self._version
+
+        def embed(self, rgba):
+            self.calls += 1
+            return rgba[..., :2].mean(dim=(1, 2))
+
+    folder = chairs / sorted(p.name for p in chairs.iterdir() if p.is_dir())[0]
+    first = Counting("a")
+    one = view_embeddings(first, folder, "train", 3)
+    assert torch.equal(view_embeddings(first, folder, "train", 3), one) and first.calls == 1
+    second = Counting("b")
+    view_embeddings(second, folder, "train", 3)
+    view_embeddings(second, folder, "train", 4)
+    assert second.calls == 2 and one.shape == (3, 2)
+
+
+# ---------------------------------------------------------------------------------------------
+# The query network
+
+
+def test_joint_embedding_fills_only_the_given_slots():
+    net = _net()
+    joint = net.joint(text=torch.ones(2, 4))
+    assert joint.shape == (2, 10) and float(joint[:, :6].abs().sum()) == 0.0 and float(joint[:, 6:].sum()) == 8.0
+    with pytest.raises(ValueError, match="must be \\[B, 6\\]"):
+        net.joint(image=torch.ones(2, 5))
+    with pytest.raises(ValueError, match="not 'audio'"):
+        net.joint(audio=torch.ones(1, 3))
+    with pytest.raises(ValueError, match="joint embeddings \\[B, 10\\]"):
+        net(torch.ones(1, 9))
+
+
+def test_outputs_are_at_the_codebook_scale_and_survive_a_round_trip(tmp_path):
+    net = _net()
+    shapes, colors = torch.randn(5, 3) * 4 + 10, torch.randn(5, 2) * 0.1 - 3
+    net.set_code_statistics(shapes, colors)
+    torch.nn.init.zeros_(net.mlp[-1].weight)
+    torch.nn.init.zeros_(net.mlp[-1].bias)
+    shape, color = net(torch.randn(3, 10))
+    assert torch.allclose(shape, shapes.mean(0).expand(3, -1), atol=1e-5) and torch.allclose(color, colors.mean(0).expand(3, -1), atol=1e-5)
+    torch.nn.init.normal_(net.mlp[-1].weight)
+    save_query(tmp_path / "q", net.eval(), {"note": "x"})
+    back = load_query(tmp_path / "q")
+    x = torch.randn(4, 10)
+    assert all(torch.allclose(a, b) for a, b in zip(net(x), back(x)))
+    assert back.meta["embedders"] == ["img", "txt"] and back.meta["note"] == "x" and back.modalities == ("image", "text")
+    meta = json.loads((tmp_path / "q" / "query.json").read_text())
+    meta["format"] = 99
+    (tmp_path / "q" / "query.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="newer than this code"):
+        load_query(tmp_path / "q")
+    with pytest.raises(FileNotFoundError, match="train-query"):
+        load_query(tmp_path / "nothing")
+
+
+def test_codebook_head_outputs_codebook_entries(tmp_path):
+    slots = [InputSlot("img", ("image",), 6, 0, "v1")]
+    with pytest.raises(ValueError, match="codebook sizes"):
+        QueryNetwork(QueryConfig(hidden=8, layers=1, head="codebook"), slots, 3, 2)
+    with pytest.raises(ValueError, match="unknown query head"):
+        QueryConfig(head="mixture")
+    net = QueryNetwork(QueryConfig(hidden=8, layers=1, dropout=0.0, head="codebook"), slots, 3, 2, codebook=(4, 5))
+    shapes, colors = torch.randn(4, 3), torch.randn(5, 2)
+    net.set_code_statistics(shapes, colors)
+    with torch.no_grad():
+        net.mlp[-1].weight.zero_()
+        net.mlp[-1].bias.copy_(torch.tensor([0, 0, 9.0, 0, 0, 0, 0, 0, 9.0]))
+    shape, color = net.eval()(torch.randn(2, 6))
+    assert torch.allclose(shape, shapes[2].expand(2, -1), atol=1e-4) and torch.allclose(color, colors[4].expand(2, -1), atol=1e-4)
+    save_query(tmp_path / "q", net)
+    back = load_query(tmp_path / "q")
+    assert back.codebook_sizes == (4, 5) and torch.allclose(back(torch.ones(1, 6))[0], shape[:1], atol=1e-4)
+
+
+def test_retrieve_ranks_by_cosine_and_rejects_bad_shapes():
+    bank = torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.7, 0.7]])
+    indices, scores = retrieve(torch.tensor([2.0, 0.1]), bank, k=2)
+    assert indices.tolist() == [0, 2] and scores[0] > scores[1] and float(scores[0]) <= 1.0 + 1e-6
+    assert len(retrieve(torch.tensor([0.0, 1.0]), bank, k=10)[0]) == 3
+    with pytest.raises(ValueError, match="bank \\[N, E\\]"):
+        retrieve(torch.ones(3), bank)
+    with pytest.raises(ValueError, match="empty"):
+        retrieve(torch.ones(2), torch.zeros(0, 2))
+    views = torch.randn(4, 3, 8)
+    assert torch.allclose(instance_bank(views).norm(dim=1), torch.ones(4), atol=1e-5)
+
+
+def test_snapping_and_nearest_instances_use_the_codebook():
+    net = _net()
+    shapes, colors = torch.randn(6, 3), torch.randn(6, 2)
+    net.set_code_statistics(shapes, colors)
+    shape, color = shapes[[4]] + 0.01, colors[[1]] - 0.01
+    snapped_shape, snapped_color = snap_codes(net, shape, color, shapes, colors)
+    assert torch.equal(snapped_shape, shapes[[4]]) and torch.equal(snapped_color, colors[[1]])
+    assert nearest_instances(net, shapes[[2]], colors[[2]], shapes, colors, k=3)[0, 0] == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# Sampling, captions, segmentation
+
+
+def test_interpolation_and_density_samples():
+    a, b = torch.zeros(4), torch.ones(4)
+    path = interpolate(a, b, 5)
+    assert torch.equal(path[0], a) and torch.equal(path[-1], b) and torch.allclose(path[2], torch.full((4,), 0.5))
+    with pytest.raises(ValueError, match="at least 2 steps"):
+        interpolate(a, b, 1)
+    generator = torch.Generator().manual_seed(0)
+    shapes = torch.cat([torch.randn(10, 4, generator=generator) * 0.1 + 3, torch.randn(10, 4, generator=generator) * 0.1 - 3])
+    colors = torch.randn(20, 3, generator=generator)
+    density = CodeDensity.fit(shapes, colors, DensityConfig(seed=0))
+    assert len(density.shape.weights) >= 2  # two clusters of shapes: BIC picks more than one component
+    s1, c1 = density.sample(8, seed=3)
+    s2, _ = CodeDensity.from_json(json.loads(json.dumps(density.to_json()))).sample(8, seed=3)
+    assert s1.shape == (8, 4) and c1.shape == (8, 3) and torch.allclose(s1, s2)
+    assert float(s1[:, 0].abs().min()) > 1.5  # samples stay in the clusters, not between them
+    relative, index = nearest_code_distance(shapes[:3], shapes)
+    assert torch.allclose(relative, torch.zeros(3)) and index.tolist() == [0, 1, 2]
+    with pytest.raises(ValueError, match="NaN"):
+        CodeDensity.fit(torch.full((4, 2), float("nan")), colors)
+
+
+def test_captions_paraphrase_attributes_and_held_out_prompts_are_new():
+    entry = {"caption": "a brown winchester armchair", "category": "chair", "name": "Winchester armchair"}
+    attrs = attributes(entry)
+    assert attrs.colour == "brown" and attrs.kind == "armchair" and attrs.noun == "winchester armchair"
+    texts = training_captions(entry["caption"], attrs)
+    assert "a brown armchair" in texts and entry["caption"] in texts and len(texts) == len(set(texts))
+    assert object_type("Bar stool") == "stool" and object_type("Deck chair") == "lounge chair" and object_type("Oak chair") == "chair"
+    assert attributes({"caption": "a red chair with arms", "category": "chair", "attributes": {"arms": True}}).kind == "armchair"
+    rng = random.Random(0)
+    prompts = {held_out_prompt("brown", "armchair", rng) for _ in range(20)}
+    synonyms = {held_out_prompt("brown", "armchair", rng, synonym=True) for _ in range(20)}
+    assert not (prompts | synonyms) & set(texts) and all("brown" in p for p in prompts) and all("brown" not in p for p in synonyms)
+    assert len(HELD_OUT_TEMPLATES) >= 3
+
+
+def test_segmentation_accepts_alpha_and_masks_and_segments_a_plain_photo():
+    from model.nerf.segment import SegmentationError, object_rgba
+
+    rng = np.random.default_rng(0)
+    photo = np.clip(0.85 + 0.03 * rng.standard_normal((64, 64, 3)), 0, 1).astype(np.float32)
+    yy, xx = np.mgrid[:64, :64]
+    disc = (yy - 30) ** 2 + (xx - 34) ** 2 < 15**2
+    photo[disc] = (0.7, 0.1, 0.1)
+    rgba, how = object_rgba(photo)
+    assert how == "grabcut"
+    found = rgba[..., 3] > 0.5
+    assert (found & disc).sum() / (found | disc).sum() > 0.9
+    masked, how = object_rgba((photo * 255).astype(np.uint8), mask=disc.astype(np.uint8) * 255)
+    assert how == "mask" and np.array_equal(masked[..., 3] > 0.5, disc)
+    with_alpha = np.concatenate([photo, disc[..., None].astype(np.float32)], axis=-1)
+    assert object_rgba(with_alpha)[1] == "alpha"
+    with pytest.raises(SegmentationError, match="could not separate the object.*with a mask"):
+        object_rgba(np.full((64, 64, 3), 0.5, np.float32))
+    boxed, _ = object_rgba(photo, box=(15, 11, 54, 50))
+    inside = np.zeros_like(disc)
+    inside[11:50, 15:54] = True
+    assert (boxed[..., 3] > 0.5)[disc].mean() > 0.9 and not (boxed[..., 3] > 0.5)[~inside].any()
+    with pytest.raises(SegmentationError, match="leaves no part"):
+        object_rgba(photo, box=(70, 70, 90, 90))
+    with pytest.raises(SegmentationError, match="image's size"):
+        object_rgba(photo, mask=np.ones((10, 10)))
+    with pytest.raises(SegmentationError, match="\\[H, W, 3\\]"):
+        object_rgba(np.zeros((4, 64, 64, 3)))
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end on the tiny prior
+
+
+@pytest.fixture(scope="module")
+def query_run(trained, chairs, tmp_path_factory):
+    from model.train.query import QueryTrainConfig, train_query
+
+    run, _ = trained
+    out = tmp_path_factory.mktemp("query")
+    cfg = QueryTrainConfig(query=QueryConfig(hidden=64, layers=1), views_per_instance=4, validation_views=1, steps=100, batch=64)
+    summary = train_query(run, chairs, out, cfg, progress=False)
+    return run, out, summary
+
+
+def test_training_writes_a_network_that_retrieves_its_instances(query_run, chairs):
+    from model.prior.query import QueryPipeline
+
+    run, out, summary = query_run
+    instances = summary["instances"]
+    assert instances >= 4 and summary["captions"] > instances
+    assert summary["validation"]["top1"] > 1 / instances  # better than chance on held-out views
+    pipeline = QueryPipeline.from_runs(run, out)
+    assert pipeline.net.meta["embedders"] == ["efficientnet-lite0", "minilm"]
+    shape, color = pipeline.codes(pipeline.embed(text="a red chair"), snap=True)
+    assert any(torch.equal(shape[0], row) for row in pipeline.shape_book)
+    assert torch.isfinite(color).all()
+
+
+def test_text_and_sample_commands_write_their_outputs(query_run, tmp_path):
+    from model.cli.main import main
+
+    run, query, _ = query_run
+    out = tmp_path / "text"
+    assert main(["text", "a blue chair", "--run", str(run), "--query", str(query), "--out", str(out), "--frames", "2", "--res", "24", "--mesh-resolution", "24"]) == 0
+    meta = json.loads((out / "nerf.json").read_text())
+    assert meta["prompt"] == "a blue chair" and {"embedding_ms", "query_ms", "hypernetwork_ms", "first_render_ms"} <= set(meta["timings"])
+    assert (out / "turntable.gif").is_file() and (out / "mesh.glb").is_file() and (out / "renders").is_dir()
+    assert main(["text", " ", "--run", str(run), "--query", str(query), "--out", str(out)]) == 2
+    samples = tmp_path / "samples"
+    assert main(["sample", "--run", str(run), "--n", "2", "--out", str(samples), "--frames", "2", "--res", "24", "--mesh-resolution", "24"]) == 0
+    record = json.loads((samples / "samples.json").read_text())
+    assert len(record["samples"]) == 2 and (samples / "grid.png").is_file() and (samples / "sample_001" / "mesh.glb").is_file()
+
+
+def test_retrieval_and_text_evaluations_on_the_tiny_prior(query_run, chairs, tmp_path):
+    from model.eval.query import retrieval, text_to_nerf
+    from model.prior.query import QueryPipeline
+
+    run, query, _ = query_run
+    pipeline = QueryPipeline.from_runs(run, query)
+    report = retrieval(pipeline, chairs, views_per_instance=1, bank_views=4, resolution=32, grid_png=tmp_path / "r.png")
+    assert report["queries"] == report["instances"] == len(pipeline.prior.instances) and 0.0 <= report["top1"] <= report["top3"] <= 1.0
+    assert set(report["conditions"]) == {"clean", "cluttered_grabcut_box", "cluttered_grabcut_border", "cluttered_unsegmented"}
+    assert report["poses"]["angle_to_nearest_training_view_deg"]["min"] > 0.0 and (tmp_path / "r.png").is_file()
+    text = text_to_nerf(pipeline, chairs, prompts=3, grid_png=tmp_path / "t.png")
+    assert text["prompts"] == 3 and 0.0 <= text["colour_accuracy"] <= 1.0 and (tmp_path / "t.png").is_file()
+    assert all(row["prompt"] not in training_captions("", attributes({"caption": ""})) for row in text["rows"])
+
+
+def test_sampling_evaluation_reports_distances_and_validity(trained, tmp_path):
+    from model.eval.query import sampling
+    from model.prior.io import load_prior
+
+    run, _ = trained
+    report = sampling(load_prior(run), samples=2, pairs=1, steps=3, grid_png=tmp_path / "s.png", interpolation_png=tmp_path / "i.png")
+    assert report["samples"] == 2 and report["distance_to_nearest_training_code"]["shape_median"] >= 0.0
+    assert 0.0 <= report["samples_validity"]["haze_fraction"] <= 1.0 and len(report["interpolation"][0]["shape_path_haze"]) == 3
+    assert (tmp_path / "s.png").is_file() and (tmp_path / "i.png").is_file()
+
+
+def test_tto_started_from_the_query_guess(query_run, chairs):
+    from model.eval.query import tto_starts
+    from model.optimize.tto import TTOConfig
+    from model.prior.query import QueryPipeline
+
+    run, query, _ = query_run
+    report = tto_starts(QueryPipeline.from_runs(run, query), chairs, objects=1, evaluation_views=2,
+                        cfg=TTOConfig(steps=4, rays_per_step=128, init_rays=64, patience=0, progress_every=1))
+    starts = report["rows"][0]["starts"]
+    assert set(starts) == {"query", "mean", "nearest"} and starts["query"]["init"] == "given" and starts["mean"]["init"] == "mean"
+    assert all(s["time_to_target_s"] is not None and s["held_out_psnr"] > 0 for s in starts.values())
+
+
+def test_codebook_head_trains_and_answers_with_codebook_entries(trained, chairs, tmp_path):
+    from model.prior.query import QueryPipeline
+    from model.train.query import QueryTrainConfig, train_query
+
+    run, _ = trained
+    cfg = QueryTrainConfig(query=QueryConfig(hidden=32, layers=1, head="codebook"), views_per_instance=2, validation_views=1, steps=30, batch=32)
+    summary = train_query(run, chairs, tmp_path / "q", cfg, progress=False)
+    assert summary["final_loss"] > 0 and summary["validation"]["queries"] == summary["instances"]
+    pipeline = QueryPipeline.from_runs(run, tmp_path / "q")
+    shape, color = pipeline.codes(pipeline.embed(text="a green chair"), snap=False)
+    assert any(torch.equal(color[0], row) for row in pipeline.color_book)
