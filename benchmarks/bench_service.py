@@ -46,7 +46,7 @@ def _free_port() -> int:
 def start_server(bundle: Path, port: int) -> subprocess.Popen:
     shutil.rmtree(STATE, ignore_errors=True)
     STATE.mkdir(parents=True)
-    env = {**os.environ, "HYPNERF_STATE_DIR": str(STATE), "HYPNERF_WORKERS": "0"}
+    env = {**os.environ, "HYPNERF_STATE_DIR": str(STATE), "HYPNERF_WORKERS": "1"}  # one worker process for the inversion jobs
     with open(STATE / "server.log", "wb") as log:
         process = subprocess.Popen([sys.executable, "-m", "model.cli", "serve", "--bundle", str(bundle), "--port", str(port),
                                     "--log-level", "warning"], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)

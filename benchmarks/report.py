@@ -23,7 +23,7 @@ COMMANDS = {
     "retrieval": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf train-query, then hypnerf eval retrieval --views 2)",
     "text_to_nerf": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf eval text-to-nerf --prompts 40)",
     "sampling": "hypnerf eval sampling --run runs/prior-cpu --samples 12 --json benchmarks/results/sampling.json",
-    "service": "python -m benchmarks.bench_service --bundle runs/service/bench-bundle  (the demo prior exported with the query network)",
+    "service": "python -m benchmarks.bench_service --bundle bundles/chair-demo --inversion-requests 2",
     "render": "python -m benchmarks.bench_render  (runs: hypnerf bench render --fit runs/bench-fit/masks/<first chair> --json benchmarks/results/render.json)",
 }
 
@@ -366,7 +366,7 @@ SERVICE_ROWS = {
     "mesh_glb_128": "mesh GLB, resolution 128",
     "text_to_first_png": "text-to-NeRF to first PNG",
     "retrieve": "retrieval (image upload)",
-    "inversion_job": "single-view inversion job end to end",
+    "inversion_job": "single-view inversion job end to end (default TTO, 1 worker)",
 }
 
 
@@ -389,8 +389,9 @@ def service_section(data: dict) -> list[str]:
                   f"the {proc['grid_resolution']}^3 occupancy grid is the rest of a creation.", ""]
     load = data.get("load_average")
     if load:
-        lines += [f"Load average {load['before']:.1f} before and {load['after']:.1f} after the run on {load['cores']} cores: "
-                  "other work shared the machine, so these are upper bounds.", ""]
+        busy = load["before"] > 1.0
+        lines += [f"Load average {load['before']:.1f} before and {load['after']:.1f} after the run on {load['cores']} cores"
+                  + (": other work shared the machine, so these are upper bounds." if busy else " (an otherwise idle machine)."), ""]
     return lines
 
 
