@@ -242,7 +242,9 @@ def test_text_to_nerf_gives_a_nerf_of_codebook_codes_and_its_first_view(client, 
     made = client.post("/v1/text-to-nerf", json={"text": "  a chair with four legs "})
     assert made.status_code in (200, 201), made.text
     nerf = made.json()["nerf"]
-    assert nerf["source"] == {"text": "a chair with four legs"}
+    # content addressed: codes an earlier request made already name that NeRF, with its first source
+    assert nerf["id"] == codes_nerf_id(bundle.digest, np.asarray(nerf["codes"]["shape"], np.float32), np.asarray(nerf["codes"]["color"], np.float32))
+    assert nerf["cached"] or nerf["source"] == {"text": "a chair with four legs"}
     # the query network's codes snap to codebook entries (shape and colour separately)
     assert np.isclose(bundle.shape_codes, nerf["codes"]["shape"], atol=1e-6).all(axis=1).any()
     assert np.isclose(bundle.color_codes, nerf["codes"]["color"], atol=1e-6).all(axis=1).any()
