@@ -41,8 +41,7 @@ def orbit_pose(scene: SceneBox, azimuth: float, elevation: float, radius: float)
 
 
 def parse_pose(text: str, scene: SceneBox) -> np.ndarray:
-    """A camera-to-world pose from 16 comma-separated numbers (row-major 4x4), checked: finite,
-    bottom row ``0,0,0,1``, rotation orthonormal with determinant +1, camera outside the scene box."""
+    """A camera-to-world pose from 16 comma-separated numbers (row-major 4x4), checked by :func:`check_pose`."""
     parts = [p for p in text.replace(" ", "").split(",")]
     try:
         values = np.array([float(p) for p in parts], dtype=np.float64)
@@ -50,9 +49,15 @@ def parse_pose(text: str, scene: SceneBox) -> np.ndarray:
         raise PoseError("pose must be 16 comma-separated numbers (a row-major 4x4 camera-to-world matrix)") from None
     if values.size != 16:
         raise PoseError(f"pose must have 16 numbers (a row-major 4x4 matrix), got {values.size}")
-    if not np.isfinite(values).all():
+    return check_pose(values.reshape(4, 4), scene)
+
+
+def check_pose(pose: np.ndarray, scene: SceneBox) -> np.ndarray:
+    """A 4x4 camera-to-world ``pose`` as float64 if it is usable: finite, bottom row ``0,0,0,1``,
+    rotation orthonormal with determinant +1, camera outside the scene box (else ``PoseError``)."""
+    pose = np.asarray(pose, dtype=np.float64)
+    if not np.isfinite(pose).all():
         raise PoseError("pose has NaN or infinite entries; every entry must be a finite number")
-    pose = values.reshape(4, 4)
     if not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
         raise PoseError(f"the pose's bottom row must be 0,0,0,1, got {pose[3].tolist()}")
     rot = pose[:3, :3]

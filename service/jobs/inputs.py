@@ -26,7 +26,7 @@ from model.nerf.rays import Intrinsics
 from model.optimize.tto import TTOConfig, TTOError, check_inputs
 from service.jobs.blobs import DiskBlobs, RedisBlobs
 from service.jobs.webhooks import refusal
-from service.poses import PoseError, intrinsics, orbit_pose, parse_pose
+from service.poses import PoseError, check_pose, intrinsics, orbit_pose
 from service.problems import ProblemError, field_errors
 from service.resident import Resident
 from service.schemas.jobs import InversionOptions, MatrixPose, OrbitPose, PoseSpec
@@ -133,7 +133,7 @@ def _camera(spec, index: int, width: int, height: int, resident: Resident) -> tu
             matrix = spec.c2w if isinstance(spec, MatrixPose) else spec
             if len(matrix) != 4 or any(len(row) != 4 for row in matrix):
                 raise PoseError(f"a pose matrix must be 4x4 (four rows of four numbers), got rows of {[len(r) for r in matrix]}")
-            pose = parse_pose(",".join(repr(float(v)) for row in matrix for v in row), scene)
+            pose = check_pose(np.asarray(matrix, dtype=np.float64), scene)
             fov = spec.fov if isinstance(spec, MatrixPose) else None
     except PoseError as exc:
         raise _invalid(f"poses.{index}", str(exc), "Invalid pose") from None
