@@ -488,3 +488,80 @@ def test_variants_must_be_positive(capsys, tmp_path):
     args = parser.parse_args(["data", "synth", "--out", str(tmp_path), "--objects", "1", "--variants", "0"])
     assert args.func(args) == 1
     assert "--variants must be at least 1" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# Shape augmentation
+
+
+def test_height_stretch_is_continuous_and_fixes_the_cut():
+    from model.data.augment import height_stretch
+
+    z = np.array([-1.0, 0.2 - 1e-9, 0.2, 0.2 + 1e-9, 1.0])
+    out = height_stretch(z, 0.2, lower=1.5, upper=0.5)
+    assert out[2] == pytest.approx(0.2)
+    assert out[1] == pytest.approx(out[3], abs=1e-8)  # no jump at the cut
+    assert out[0] == pytest.approx(0.2 - 1.2 * 1.5) and out[4] == pytest.approx(0.2 + 0.8 * 0.5)
+    assert np.all(np.diff(out) > 0)  # order (and so every face's connectivity) is kept
+
+
+def test_deformed_copies_change_proportions_and_mirror_outward():
+    from model.data.augment import Deformation, deformed
+
+    mesh = normalise(chair_mesh(sample_spec(np.random.default_rng(0))))
+    lo, hi = mesh.bounds()
+    wide = deformed(mesh, Deformation(scale=(1.3, 1.0, 1.0), cut=0.5, lower=1.0, upper=1.0, mirror=False))
+    extent, base = np.ptp(wide.bounds(), axis=0), hi - lo
+    assert extent[0] / extent[2] == pytest.approx(1.3 * base[0] / base[2], rel=1e-6)
+    legs = deformed(mesh, Deformation(scale=(1.0, 1.0, 1.0), cut=0.4, lower=1.4, upper=1.0, mirror=False))
+    assert np.ptp(legs.bounds(), axis=0)[2] == pytest.approx(base[2] * (0.4 * 1.4 + 0.6), rel=1e-6)
+    mirrored = deformed(mesh, Deformation(scale=(1.0, 1.0, 1.0), cut=0.5, lower=1.0, upper=1.0, mirror=True))
+    assert np.allclose(np.sort(mirrored.vertices[:, 0]), np.sort(-(mesh.vertices[:, 0] - 0.5 * (lo[0] + hi[0]))))
+    # a reflection flips winding back, so face normals still point out: the signed volume keeps its sign
+    def volume(m):
+        t = m.triangles
+        return np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0
+
+    assert np.sign(volume(mirrored)) == np.sign(volume(mesh)) and volume(mesh) != 0
+
+
+def test_deformations_are_seeded_by_the_copy_id():
+    from model.data.augment import AugmentRanges, draw_deformation
+
+    a, b = draw_deformation("chair-aug1"), draw_deformation("chair-aug1")
+    assert a == b and draw_deformation("chair-aug2") != a
+    ranges = AugmentRanges()
+    for k in range(20):
+        d = draw_deformation(f"x-aug{k}")
+        assert all(ranges.scale[0] <= s <= ranges.scale[1] for s in d.scale)
+        assert ranges.cut[0] <= d.cut <= ranges.cut[1] and ranges.stretch[0] <= d.lower <= ranges.stretch[1]
+
+
+def test_augmented_copies_only_of_train_meshes_and_in_their_split(tmp_path):
+    build_dataset(tmp_path, synth_objects(8, seed=5), RenderSettings(views=4, resolution=16, variants=2, augment=2))
+    entries = {e.id: e for e in load_index(tmp_path)}
+    sources = [e for e in entries.values() if "augmented_from" not in e.extra]
+    copies = [e for e in entries.values() if "augmented_from" in e.extra]
+    plain = assign_splits({e.extra["shape_id"] for e in sources})
+    assert {e.split for e in sources} == set(OBJECT_SPLITS)
+    for e in sources:  # augmenting moves no source into another split
+        assert e.split == plain[e.extra["shape_id"]]
+    train_shapes = {e.extra["shape_id"] for e in sources if e.split == "train"}
+    assert {c.extra["augmented_from"] for c in copies} == train_shapes
+    assert len(copies) == len(train_shapes) * 2 * 2  # two copies, each in two colour variants
+    for c in copies:
+        assert c.split == "train"
+        assert c.extra["shape_id"] != c.extra["augmented_from"]  # a new shape: its own shape code
+        assert c.extra["shape_id"].startswith(c.extra["augmented_from"] + "-aug")
+    some = copies[0]
+    source_mesh = trimesh.load(tmp_path / some.extra["augmented_from"] / "mesh.ply")
+    copy_mesh = trimesh.load(tmp_path / some.extra["shape_id"] / "mesh.ply")
+    assert len(source_mesh.faces) == len(copy_mesh.faces) and not np.allclose(source_mesh.vertices, copy_mesh.vertices)
+
+
+def test_augment_must_not_be_negative(capsys, tmp_path):
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers().add_parser("data"))
+    args = parser.parse_args(["data", "synth", "--out", str(tmp_path), "--objects", "1", "--augment", "-1"])
+    assert args.func(args) == 1
+    assert "--augment must be 0 or more" in capsys.readouterr().err

@@ -11,7 +11,7 @@ import torch
 
 from model.nerf import config
 from model.nerf.fields.hashgrid import FieldConfig, validate_params
-from model.prior.hypernet import HyperNetConfig, HyperNetwork, code_penalty, preset
+from model.prior.hypernet import HyperNetConfig, HyperNetwork, code_penalty, preset, spread_noise
 from model.nerf.fields.positional import PEFieldConfig
 
 
@@ -112,3 +112,28 @@ def test_no_mrhe_prior_emits_the_positional_field():
     net = HyperNetwork(HyperNetConfig(field=cfg.field, shape_code_dim=8, color_code_dim=8, head_hidden=16, head_layers=1, table_rank=None), instances=2)
     params = net(torch.tensor([0, 1]))
     assert set(params) == set(cfg.field.param_shapes())
+
+
+def test_code_noise_follows_the_codebook_spread_and_is_seeded(tiny):
+    net = HyperNetwork(tiny, instances=6, seed=2)
+    with torch.no_grad():
+        net.shape_codes.weight.mul_(torch.linspace(0.1, 3.0, tiny.shape_code_dim))  # a spread per dimension
+    index = torch.arange(6)
+    plain = net(index)
+    assert all(torch.equal(plain[k], v) for k, v in net(index, 0.0).items())  # no noise: the codebook's own NeRFs
+    a = net(index, 0.5, torch.Generator().manual_seed(3))
+    b = net(index, 0.5, torch.Generator().manual_seed(3))
+    assert all(torch.equal(a[k], b[k]) for k in a) and any(not torch.allclose(a[k], plain[k]) for k in a)
+    book = net.shape_codes.weight
+    noise = spread_noise(torch.zeros(20000, book.shape[1]), book, torch.Generator().manual_seed(0))
+    ratio = noise.std(dim=0) / book.detach().std(dim=0)
+    assert torch.allclose(ratio, torch.ones_like(ratio), atol=0.05)  # per dimension, the codebook's spread
+    assert noise.requires_grad is False
+
+
+def test_code_noise_keeps_gradients_on_the_codes(tiny):
+    net = HyperNetwork(tiny, instances=3)
+    params = net(torch.tensor([0, 2]), 0.5, torch.Generator().manual_seed(0))
+    sum(v.float().sum() for v in params.values()).backward()
+    assert net.shape_codes.weight.grad is not None and net.shape_codes.weight.grad.abs().sum() > 0
+    assert net.color_codes.weight.grad[[0, 2]].abs().sum() > 0 and net.color_codes.weight.grad[1].abs().sum() == 0

@@ -110,6 +110,19 @@ def test_resume_continues_exactly(chairs, tmp_path):
         assert torch.allclose(a[name], b[name], atol=1e-6), name
 
 
+def test_code_noise_trains_a_different_prior_and_is_recorded(chairs, tmp_path):
+    plain = train(chairs, tmp_path / "plain", preset("tiny"), tiny_train(6), progress=False)
+    noisy_cfg = tiny_train(6)
+    noisy_cfg.code_noise = 0.5
+    noisy = train(chairs, tmp_path / "noisy", preset("tiny"), noisy_cfg, progress=False)
+    assert json.loads((tmp_path / "noisy" / PRIOR_META).read_text())["train"]["code_noise"] == 0.5
+    a = torch.load(tmp_path / "plain" / CHECKPOINT, weights_only=False)["model"]
+    b = torch.load(tmp_path / "noisy" / CHECKPOINT, weights_only=False)["model"]
+    assert any(not torch.allclose(a[k], b[k]) for k in a)
+    assert plain["steps"] == noisy["steps"] == 6
+    assert main(["train", "--data", str(chairs), "--out", str(tmp_path / "r"), "--preset", "tiny", "--steps", "2", "--code-noise", "-1"]) == 2
+
+
 def test_resume_without_checkpoint_says_what_to_do(chairs, tmp_path):
     with pytest.raises(FileNotFoundError, match="without --resume"):
         train(chairs, tmp_path, preset("tiny"), tiny_train(2), resume=True, progress=False)

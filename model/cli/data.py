@@ -42,6 +42,10 @@ def register(data: argparse.ArgumentParser) -> argparse.ArgumentParser:
         "--variants", type=int, default=1,
         help="objects per mesh: the mesh as it is plus N-1 colour/material variants (ids <id>-v1, ...; default 1)",
     )
+    render.add_argument(
+        "--augment", type=int, default=0,
+        help="deformed copies of each train-split mesh as new shapes (ids <id>-augK; scaled, stretched, mirrored; default 0)",
+    )
 
     synth = commands.add_parser("synth", parents=[render], help="procedural chairs", description="Render procedural chairs.")
     synth.add_argument("--objects", type=int, default=16, help="number of chairs (default 16)")
@@ -91,7 +95,9 @@ def register(data: argparse.ArgumentParser) -> argparse.ArgumentParser:
 def _build(args, source: Callable[[], tuple[Iterable[SourceObject], int]]) -> int:
     """Render what ``source()`` lists into ``args.out``; expected failures become a message and status 1."""
     try:
-        settings = RenderSettings(views=args.views, resolution=args.res, supersample=args.supersample, variants=args.variants)
+        settings = RenderSettings(
+            views=args.views, resolution=args.res, supersample=args.supersample, variants=args.variants, augment=args.augment
+        )
         objects, total = source()
         start = time.perf_counter()
         entries = build_dataset(args.out, objects, settings, total=total)

@@ -116,6 +116,8 @@ def cmd_invert(args) -> int:
 
 
 def register_generalization(eval_sub) -> None:
+    from model.eval.generalization import ROWS
+
     gen = eval_sub.add_parser("generalization", help="NeRFs of unseen test objects from one view (paper Table 1)")
     gen.add_argument("--run", required=True, help="run folder written by `hypnerf train`")
     gen.add_argument("--data", required=True, help="the dataset the prior was trained on (its test split is used)")
@@ -126,16 +128,22 @@ def register_generalization(eval_sub) -> None:
     gen.add_argument("--finetune-steps", type=int, default=0)
     gen.add_argument("--fit-steps", type=int, default=500, help="steps of the single-view fit baseline")
     gen.add_argument("--denoiser", help="a denoiser folder from `hypnerf train-denoiser` (adds the tto_denoise row)")
+    gen.add_argument("--rows", help=f"comma-separated rows to compute (default all of {','.join(ROWS)})")
     gen.set_defaults(func=cmd_eval_generalization)
 
 
 def cmd_eval_generalization(args) -> int:
     from model.cli.main import _write_json
-    from model.eval.generalization import GeneralizationConfig, generalization
+    from model.eval.generalization import ROWS, GeneralizationConfig, generalization
     from model.optimize.tto import TTOConfig
 
     tto = TTOConfig(finetune_steps=args.finetune_steps, **({"steps": args.steps} if args.steps else {}))
-    cfg = GeneralizationConfig(objects=args.objects, input_views=args.views, tto=tto, fit_steps=args.fit_steps)
+    rows = tuple(r.strip() for r in args.rows.split(",") if r.strip()) if args.rows else ROWS
+    unknown = sorted(set(rows) - set(ROWS))
+    if unknown or not rows:
+        print(f"hypnerf eval generalization: error: unknown rows {unknown or rows}; choose from {', '.join(ROWS)}", file=sys.stderr)
+        return 2
+    cfg = GeneralizationConfig(objects=args.objects, input_views=args.views, tto=tto, fit_steps=args.fit_steps, rows=rows)
     out = Path(args.json)
     report = generalization(Path(args.run), Path(args.data), cfg, denoiser=Path(args.denoiser) if args.denoiser else None, out=out)
     report["command"] = "hypnerf " + " ".join(sys.argv[1:])

@@ -25,6 +25,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--limit", type=int, help="train on the first N instances only")
     parser.add_argument("--occupancy", choices=OCCUPANCY_SOURCES, default=defaults.occupancy,
                         help="where training rays take samples: the visual hull (default), cells at the ground-truth mesh surface, or the whole box")
+    parser.add_argument("--code-noise", type=float, default=defaults.code_noise,
+                        help="variational codebook: Gaussian noise on the codes during training, in units of the codebook's per-dimension std (default 0: none)")
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint (its settings win)")
     parser.add_argument("--until", type=int, help="stop after this step with a checkpoint (continue later with --resume)")
@@ -34,6 +36,8 @@ def register(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     if args.steps < 1:
         raise ValueError("--steps must be at least 1")
+    if args.code_noise < 0:
+        raise ValueError("--code-noise must be 0 or more (units of the codebook's per-dimension std)")
     tcfg = TrainConfig(
         steps=args.steps,
         objects_per_step=args.objects_per_step,
@@ -42,6 +46,7 @@ def run(args) -> int:
         validate_every=args.validate_every,
         checkpoint_every=args.checkpoint_every,
         occupancy=args.occupancy,
+        code_noise=args.code_noise,
         seed=args.seed,
     )
     summary = train(args.data, args.out, preset(args.preset), tcfg, resume=args.resume, until=args.until, limit=args.limit)

@@ -12,11 +12,13 @@ import logging
 import re
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from model.data.augment import deformed, draw_deformation
 from model.data.colours import default_caption
 from model.data.cameras import CAMERA_ANGLE_X, DEFAULT_VIEWS, evaluation_poses, training_poses
 from model.data.dataset import INDEX_FILE, ObjectEntry, assign_splits, load_index, write_index, write_object
@@ -34,12 +36,14 @@ _ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 @dataclass
 class RenderSettings:
     """How each object is rendered: training view count, square image size, sub-pixel rays per
-    side, and how many colour variants of each mesh become objects (1: the mesh as it is)."""
+    side, how many colour variants of each mesh become objects (1: the mesh as it is), and how
+    many deformed copies of each train-split mesh become new shapes (:mod:`model.data.augment`)."""
 
     views: int = DEFAULT_VIEWS
     resolution: int = 128
     supersample: int = DEFAULT_SUPERSAMPLE
     variants: int = 1
+    augment: int = 0
 
     def __post_init__(self):
         if self.views < 1:
@@ -50,6 +54,8 @@ class RenderSettings:
             raise ValueError(f"supersample must be at least 1, got {self.supersample}")
         if self.variants < 1:
             raise ValueError(f"--variants must be at least 1 (1 renders each mesh as it is), got {self.variants}")
+        if self.augment < 0:
+            raise ValueError(f"--augment must be 0 or more deformed copies per mesh, got {self.augment}")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -97,6 +103,8 @@ def build_dataset(out: Path, objects: Iterable[SourceObject], settings: RenderSe
     """Render every object into ``out/<id>/`` and write ``out/index.json``; returns all index entries.
 
     The index is rewritten after each object, so an interrupted run leaves a usable dataset.
+    With ``settings.augment`` each source that falls in the train split is followed by that many
+    deformed copies of its mesh.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -104,6 +112,9 @@ def build_dataset(out: Path, objects: Iterable[SourceObject], settings: RenderSe
     if (out / INDEX_FILE).exists():
         entries = {entry.id: entry for entry in load_index(out)}
         log.info("adding to the existing dataset in %s (%d objects)", out, len(entries))
+    if settings.augment:
+        objects = with_augmented_copies(list(objects), settings.augment, entries)
+        total = len(objects)
     added: set[str] = set()
     for item in tqdm(objects, total=total, desc="objects", unit="object"):
         if not _ID_PATTERN.match(item.id):
@@ -132,9 +143,40 @@ def build_dataset(out: Path, objects: Iterable[SourceObject], settings: RenderSe
     return _write_with_splits(out, entries)
 
 
+def split_group(object_id: str, extra: dict) -> str:
+    """What an object is split with: colour variants of one mesh and deformed copies of it share
+    the source mesh's split, so no test shape (nor a deformation of one) is seen in training."""
+    return str(extra.get("augmented_from", extra.get("shape_id", object_id)))
+
+
+def with_augmented_copies(objects: list[SourceObject], copies: int, existing: dict[str, ObjectEntry]) -> list[SourceObject]:
+    """``objects`` with ``copies`` deformed copies (ids ``<id>-aug1``, ...) after each one in the train split."""
+    groups = {i: split_group(i, e.extra) for i, e in existing.items()} | {item.id: item.id for item in objects}
+    splits = assign_splits(groups, groups=groups)
+    out = []
+    for item in objects:
+        out.append(item)
+        if splits[item.id] != "train":
+            continue
+        for j in range(1, copies + 1):
+            copy_id = f"{item.id}-aug{j}"
+            deformation = draw_deformation(copy_id)
+            out.append(
+                SourceObject(
+                    id=copy_id, category=item.category, caption=item.caption, load=partial(_deformed_load, item.load, deformation),
+                    extra={**item.extra, "augmented_from": item.id, "deformation": deformation.to_json()},
+                )
+            )
+    return out
+
+
+def _deformed_load(load: Callable[[], tuple[RenderMesh, dict]], deformation) -> tuple[RenderMesh, dict]:
+    mesh, learned = load()
+    return deformed(mesh, deformation), learned
+
+
 def _write_with_splits(out: Path, entries: dict[str, ObjectEntry]) -> list[ObjectEntry]:
-    # colour variants of one mesh share a split, so no test shape is seen in training
-    splits = assign_splits(entries, groups={i: str(e.extra.get("shape_id", i)) for i, e in entries.items()})
+    splits = assign_splits(entries, groups={i: split_group(i, e.extra) for i, e in entries.items()})
     for object_id, entry in entries.items():
         entry.split = splits[object_id]
     write_index(out, entries.values())

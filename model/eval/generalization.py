@@ -209,6 +209,7 @@ def generalization(run: Path, data: Path, cfg: GeneralizationConfig, *, denoiser
         "fid_features": "EfficientNet-Lite0 ImageNet pooled features (1280-d), not Inception",
         "tto_s": float(np.mean([r["tto_s"] for r in per_object])),
         "fit_s": float(np.mean([r["fit_s"] for r in per_object])) if "single_view_fit" in rows else None,
+        "tto_denoise_s": float(np.mean([r["tto_denoise_s"] for r in per_object])) if "tto_denoise" in rows else None,
         "config": config.to_dict(cfg),
         "per_object": per_object,
     }

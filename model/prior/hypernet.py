@@ -144,14 +144,27 @@ class HyperNetwork(nn.Module):
             out[name] = head(shape_code if name in self.shape_names else color_code)
         return out
 
-    def forward(self, instances: torch.Tensor) -> FieldParams:
-        return self.params_from_codes(*self.codes(instances))
+    def forward(self, instances: torch.Tensor, code_noise: float = 0.0, generator: torch.Generator | None = None) -> FieldParams:
+        """Field parameters of instances ``[B]``; with ``code_noise`` their codes are perturbed by
+        Gaussian noise of that many times each codebook's per-dimension spread (training only)."""
+        shape_code, color_code = self.codes(instances)
+        if code_noise > 0:
+            shape_code = shape_code + code_noise * spread_noise(shape_code, self.shape_codes.weight, generator)
+            color_code = color_code + code_noise * spread_noise(color_code, self.color_codes.weight, generator)
+        return self.params_from_codes(shape_code, color_code)
 
     def head_parameter_counts(self) -> dict[str, int]:
         counts = {name: sum(p.numel() for p in head.parameters()) for name, head in self.heads.items()}
         counts["shape_codebook"] = self.shape_codes.weight.numel()
         counts["color_codebook"] = self.color_codes.weight.numel()
         return counts
+
+
+def spread_noise(code: torch.Tensor, book: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Gaussian noise shaped like ``code [B, D]`` with the per-dimension std of ``book [N, D]``
+    (detached: the noise follows the codebook's scale, so codes cannot outgrow it)."""
+    spread = book.detach().std(dim=0) if book.shape[0] > 1 else book.detach().abs().mean().expand(book.shape[1])
+    return torch.randn(code.shape, generator=generator, device=code.device, dtype=code.dtype) * spread
 
 
 def code_penalty(shape_code: torch.Tensor, color_code: torch.Tensor) -> torch.Tensor:

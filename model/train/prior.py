@@ -57,6 +57,10 @@ class TrainConfig:
     betas: tuple[float, float] = (0.9, 0.99)
     grad_clip: float = 1.0
     code_penalty: float = 1e-4
+    # A variational codebook with a fixed posterior width: each drawn code is perturbed by Gaussian
+    # noise of this many times its codebook's per-dimension std, so that neighbourhoods of the
+    # codes decode to valid NeRFs (with the width fixed, the KL term reduces to the code penalty).
+    code_noise: float = 0.0
     free_space_weight: float = 0.1
     free_space_points: int = 1024
     grid_resolution: int = 64
@@ -262,7 +266,7 @@ def train(
         generator = _step_generator(tcfg.seed, step, workers.rank, device)
         chosen = step_instances(len(data.instances), per_worker, tcfg.seed, step, workers)
         index = torch.tensor(chosen, device=device)
-        params = model(index)
+        params = model(index, tcfg.code_noise, generator) if tcfg.code_noise > 0 else model(index)
         loss = torch.zeros((), device=device)
         mse = torch.zeros((), device=device)
         samples = 0
