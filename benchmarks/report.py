@@ -16,9 +16,12 @@ COMMANDS = {
     "import": "python -m benchmarks.bench_import  (hypnerf data synth, then hypnerf data import-transforms and hypnerf fit --steps 1500)",
     "presets": "python -m benchmarks.bench_presets",
     "generalization": "hypnerf eval generalization --run runs/prior-cpu --data data/sh3d-chair-variants --json benchmarks/results/generalization.json --objects 11  (python -m benchmarks.bench_inversion --stage generalization adds --denoiser runs/denoise/denoiser when it exists)",
-    "multiview": "python -m benchmarks.bench_inversion --stage multiview --objects 4",
+    "multiview": "python -m benchmarks.bench_inversion --stage multiview --objects 3",
     "tto_speed": "python -m benchmarks.bench_inversion --stage speed --objects 3",
-    "poses": "python -m benchmarks.bench_inversion --stage poses --objects 4",
+    "poses": "python -m benchmarks.bench_inversion --stage poses --objects 3",
+    "shapes": "OMP_NUM_THREADS=1 python -m benchmarks.bench_shapes  (hypnerf data import-sh3d --augment 2, hypnerf train --steps 4000 per row, hypnerf eval generalization --rows tto,nearest,mean_code)",
+    "variational": "OMP_NUM_THREADS=1 python -m benchmarks.bench_shapes  (hypnerf train --code-noise 0.5, hypnerf eval generalization, hypnerf eval sampling)",
+    "query_tto": "hypnerf eval query-tto --run runs/prior-cpu --data data/sh3d-chair-variants --query runs/query/cpu --objects 11 --json benchmarks/results/query_tto.json",
     "denoise": "OMP_NUM_THREADS=1 python -m benchmarks.bench_denoise  (after hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants --out runs/denoise/denoiser --steps 3000 --instances 0)",
     "retrieval": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf train-query, then hypnerf eval retrieval --views 2)",
     "text_to_nerf": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf eval text-to-nerf --prompts 40)",
@@ -358,6 +361,50 @@ def poses_section(data: dict) -> list[str]:
             f"Unknown pose: success (final rotation error under 15 degrees) {100 * unknown.get('success_rate', 0):.0f}%.", ""]
 
 
+def _test_cells(row: dict | None) -> list[str]:
+    return [f"{row['psnr']:.2f}", f"{row['psnr_fg']:.2f}"] if row else ["", ""]
+
+
+def shapes_section(data: dict) -> list[str]:
+    rows = []
+    for r in data["rows"].values():
+        test = r["test"]
+        rows.append([str(r["shapes"]), str(r["instances"]), f"{r['training_views']['psnr']:.2f} / {r['training_views']['psnr_fg']:.2f}",
+                     *_test_cells(test.get("tto")), f"{test['tto']['fid']:.0f}", *_test_cells(test.get("nearest")), *_test_cells(test.get("mean_code")),
+                     f"{r['train_wall_s'] / 60:.0f}"])
+    first = next(iter(data["rows"].values()))
+    return ["## Generalisation against the number of training shapes", "",
+            f"Priors trained {data['steps']} steps each (8 objects, 4096 rays a step, one thread), so every row has the same compute; "
+            f"more shapes means fewer steps per instance. The 153-shape set adds {data['augmentation']}. Test: the same "
+            f"{first['test_objects']} unseen chairs, one input view, 91 evaluation views at 128x128 (blank floor "
+            f"{first['floor_psnr']:.2f} / {first['floor_psnr_fg']:.2f} dB). Training views: the prior's own validation views (full / fg).", "",
+            *_table(["shapes", "instances", "training views (dB)", "TTO full", "TTO fg", "TTO FID", "nearest full", "nearest fg",
+                     "mean code full", "mean code fg", "train min"], rows), ""]
+
+
+def variational_section(data: dict) -> list[str]:
+    rows = []
+    for name, r in data["rows"].items():
+        test, own, samples = r["test"], r["training_codes_validity"], r["samples_validity"]
+        rows.append([f"{name} (code noise {r['code_noise']})", f"{r['training_views']['psnr']:.2f} / {r['training_views']['psnr_fg']:.2f}",
+                     *_test_cells(test.get("tto")), *_test_cells(test.get("nearest")), f"{own['haze_fraction']:.2f}",
+                     f"{samples['haze_fraction']:.2f}", f"{samples['foreground_fraction']:.3f}", f"{r['shape_midpoint_haze_excess']:+.2f}"])
+    return ["## A variational codebook (code noise during training)", "",
+            f"The same 51 shapes and budget ({data['steps']} steps); code noise perturbs each drawn code by Gaussian noise of that many "
+            "times its codebook's per-dimension spread. Haze: " + data["haze_metric"] + "; midpoint excess: " + data["midpoint_metric"] + ".", "",
+            *_table(["prior", "training views (dB)", "TTO full", "TTO fg", "nearest full", "nearest fg", "haze, training codes",
+                     "haze, samples", "fg fraction, samples", "shape midpoint haze excess"], rows), ""]
+
+
+def query_tto_section(data: dict) -> list[str]:
+    rows = [[start, f"{r['first_input_psnr']:.2f}", f"{r['time_to_target_s']:.1f}" if r.get("time_to_target_s") is not None else "not reached",
+             f"{r['held_out_psnr']:.2f}", f"{r['held_out_psnr_fg']:.2f}", f"{r['wall_s']:.1f}"] for start, r in data["summary"].items()]
+    return ["## TTO started from the query network's guess", "",
+            f"{data['objects']} unseen test chairs, one input view, {data['steps']} TTO steps from each start (no early stopping). "
+            f"Target: {data['target']}.", "",
+            *_table(["start", "input-view PSNR at step 0 (dB)", "time to target (s)", "held-out full (dB)", "held-out fg (dB)", "wall s"], rows), ""]
+
+
 SERVICE_ROWS = {
     "create_uncached": "create a NeRF (hypernetwork + occupancy grid)",
     "create_cached": "create a cached NeRF",
@@ -487,6 +534,9 @@ def main() -> int:
         ("multiview", multiview_section),
         ("tto_speed", tto_speed_section),
         ("poses", poses_section),
+        ("shapes", shapes_section),
+        ("variational", variational_section),
+        ("query_tto", query_tto_section),
         ("denoise", denoise_section),
         ("retrieval", retrieval_section),
         ("text_to_nerf", text_to_nerf_section),

@@ -254,6 +254,44 @@ def test_captions_paraphrase_attributes_and_held_out_prompts_are_new():
     assert len(HELD_OUT_TEMPLATES) >= 3
 
 
+def test_training_words_are_disjoint_from_held_out_words():
+    from model.data.colours import PALETTE
+    from model.prior.captions import COLOUR_SYNONYMS, TRAIN_COLOUR_WORDS, TRAIN_TYPE_WORDS, TYPE_WORDS
+
+    held_colours = {w for words in COLOUR_SYNONYMS.values() for w in words}
+    train_colours = {w for words in TRAIN_COLOUR_WORDS.values() for w in words}
+    assert set(TRAIN_COLOUR_WORDS) == set(PALETTE) == set(COLOUR_SYNONYMS)
+    assert not held_colours & train_colours and not train_colours & set(PALETTE)
+    held_types = {w for kind, words in TYPE_WORDS.items() for w in words if w != kind}  # the type names themselves are trained on
+    assert not held_types & {w for words in TRAIN_TYPE_WORDS.values() for w in words}
+    assert set(TRAIN_TYPE_WORDS) == set(TYPE_WORDS)
+
+
+def test_composed_captions_aim_at_the_shape_and_a_wearer_of_the_colour():
+    from model.prior.captions import composed_captions
+    from model.train.query import caption_targets
+
+    entries = [
+        {"caption": "a red armchair", "category": "chair", "name": "Club armchair"},
+        {"caption": "a blue armchair", "category": "chair", "name": "Club armchair"},
+        {"caption": "a green stool", "category": "chair", "name": "Bar stool"},
+    ]
+    shape_of = [0, 0, 1]
+    texts, owners = caption_targets(entries, shape_of, composed_per_pair=3, seed=0)
+    own = [(t, o) for t, o in zip(texts, owners) if o[0] == o[1]]
+    composed = [(t, o) for t, o in zip(texts, owners) if o[0] != o[1]]
+    assert {o[0] for _, o in own} == {0, 1, 2}
+    # the armchair shape in green (worn by the stool) and the stool in red or blue, never a colour its own instances wear
+    assert {(o[0], entries[o[1]]["caption"].split()[1]) for _, o in composed} == {(0, "green"), (2, "red"), (2, "blue")}
+    for text, (shape, donor) in composed:
+        assert text in composed_captions(attributes(entries[shape]), entries[donor]["caption"].split()[1])
+    assert len(composed) == 3 * 3
+    assert caption_targets(entries, shape_of, 3, seed=0) == (texts, owners)  # seeded
+    assert all(o[0] == o[1] for o in caption_targets(entries, shape_of, 0)[1])
+    with pytest.raises(ValueError, match="palette"):
+        composed_captions(attributes(entries[0]), "chartreuse")
+
+
 def test_segmentation_accepts_alpha_and_masks_and_segments_a_plain_photo():
     from model.nerf.segment import SegmentationError, object_rgba
 

@@ -44,6 +44,9 @@ def register_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--text-embedder", default=defaults.text_embedder, choices=["minilm", "clip", ""], help="'' trains an image-only network")
     parser.add_argument("--head", default=defaults.query.head, choices=["codebook", "regression"],
                         help="codebook: attention over the codebook, trained as classification; regression: the paper's L2 onto the codes")
+    parser.add_argument("--composed", type=int, default=defaults.composed_per_pair,
+                        help="composed captions per (shape, colour none of its instances wears), aimed at that shape with another "
+                             f"instance's colour code (default {defaults.composed_per_pair}; 0: own captions only)")
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.set_defaults(func=cmd_train)
 
@@ -57,7 +60,8 @@ def cmd_train(args) -> int:
     from model.prior.query import QueryConfig
 
     cfg = QueryTrainConfig(query=QueryConfig(head=args.head), image_embedder=args.image_embedder, text_embedder=args.text_embedder, views_per_instance=args.views,
-                           steps=args.steps, batch=args.batch, lr=args.lr, text_fraction=args.text_fraction, seed=args.seed)
+                           steps=args.steps, batch=args.batch, lr=args.lr, text_fraction=args.text_fraction, composed_per_pair=args.composed,
+                           seed=args.seed)
     out = Path(args.out) if args.out else Path(args.run) / "query"
     summary = train_query(Path(args.run), Path(args.data), out, cfg, default_device())
     validation = summary["validation"]

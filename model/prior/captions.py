@@ -6,10 +6,15 @@ colour its caption names: captions are built from the mesh's dominant colour, se
 category) and its coarse type (armchair, stool, lounge chair, folding chair, high chair, chair),
 which the evaluation scores text-to-NeRF against.
 
-Training text is the dataset caption plus paraphrases from :data:`TRAIN_TEMPLATES` with the noun
-and with the type. Held-out prompts use other templates (:data:`HELD_OUT_TEMPLATES`), so an
-evaluation prompt is never a training sentence, and optionally colour words never seen in
-training (:data:`COLOUR_SYNONYMS`).
+Training text is the dataset caption plus paraphrases from :data:`TRAIN_TEMPLATES` with the noun,
+the type and the type's training paraphrases (:data:`TRAIN_TYPE_WORDS`), and with the colour's
+training words (:data:`TRAIN_COLOUR_WORDS`). Composed captions (:func:`composed_captions`) name a
+shape with a colour it was never rendered in; the query network learns them as that shape's code
+with another instance's colour code (the prior's codes are disentangled: a colour code carries
+its colours onto any shape), so "a purple lounge chair" has an answer although no training
+instance is one. Held-out prompts use other templates (:data:`HELD_OUT_TEMPLATES`), so an
+evaluation prompt is never a training sentence, other type words (:data:`TYPE_WORDS`), and
+optionally colour words never seen in training (:data:`COLOUR_SYNONYMS`).
 """
 
 from __future__ import annotations
@@ -64,6 +69,31 @@ COLOUR_SYNONYMS = {
     "white": ("ivory", "snow"),
     "grey": ("gray", "ash"),
 }
+# further colour words for training captions, disjoint from the held-out synonyms above
+TRAIN_COLOUR_WORDS = {
+    "red": ("ruby", "cherry"),
+    "orange": ("apricot", "pumpkin"),
+    "yellow": ("golden", "canary"),
+    "green": ("olive", "lime"),
+    "teal": ("aqua", "cyan"),
+    "blue": ("azure", "sapphire"),
+    "purple": ("lavender", "lilac"),
+    "pink": ("salmon", "fuchsia"),
+    "brown": ("coffee", "chestnut"),
+    "beige": ("tan", "khaki"),
+    "black": ("charcoal", "onyx"),
+    "white": ("pearl", "milky"),
+    "grey": ("silver", "slate"),
+}
+# type paraphrases for training captions, disjoint from the held-out type words below
+TRAIN_TYPE_WORDS = {
+    "armchair": ("chair with arms", "easy chair"),
+    "stool": ("bar stool", "seat without a back"),
+    "lounge chair": ("reclining chair", "sun lounger"),
+    "folding chair": ("foldable chair", "camping chair"),
+    "high chair": ("baby chair", "feeding chair"),
+    "chair": ("side chair", "seat with a back"),
+}
 # type words for held-out prompts, one per type (the training nouns are catalogue names)
 TYPE_WORDS = {
     "armchair": ("armchair", "arm chair"),
@@ -109,15 +139,32 @@ def attributes(entry: dict) -> Attributes:
     return Attributes(caption_colour(str(entry.get("caption", ""))), noun, kind)
 
 
-def training_captions(caption: str, attrs: Attributes) -> list[str]:
-    """The dataset caption and its paraphrases with the noun and with the coarse type."""
-    texts = [caption]
-    for noun in dict.fromkeys((attrs.noun, attrs.kind)):
+def _captions(colour: str | None, nouns: list[str]) -> list[str]:
+    words = [colour, *TRAIN_COLOUR_WORDS.get(colour, ())] if colour else [None]
+    texts = []
+    for noun in nouns:
         for template in TRAIN_TEMPLATES:
-            if attrs.colour is None and "{colour}" in template:
+            coloured = "{colour}" in template
+            if colour is None and coloured:
                 continue
-            texts.append(template.format(a=article(attrs.colour or ""), colour=attrs.colour, noun=noun, a_noun=article(noun)))
-    return list(dict.fromkeys(texts))
+            for word in words if coloured else words[:1]:
+                texts.append(template.format(a=article(word or ""), colour=word, noun=noun, a_noun=article(noun)))
+    return texts
+
+
+def training_captions(caption: str, attrs: Attributes) -> list[str]:
+    """The dataset caption and its paraphrases with the noun, the coarse type and its training
+    paraphrases, each coloured with the palette name and its training colour words."""
+    nouns = list(dict.fromkeys((attrs.noun, attrs.kind, *TRAIN_TYPE_WORDS.get(attrs.kind, ()))))
+    return list(dict.fromkeys([caption, *_captions(attrs.colour, nouns)]))
+
+
+def composed_captions(attrs: Attributes, colour: str) -> list[str]:
+    """Captions of the shape ``attrs`` describes in another palette ``colour`` (type words only:
+    the catalogue noun may itself name a colour or material)."""
+    if colour not in PALETTE:
+        raise ValueError(f"{colour!r} is not a palette colour")
+    return list(dict.fromkeys(_captions(colour, list(dict.fromkeys((attrs.kind, *TRAIN_TYPE_WORDS.get(attrs.kind, ())))))))
 
 
 def held_out_prompt(colour: str, kind: str, rng: random.Random, synonym: bool = False) -> str:

@@ -2,9 +2,11 @@
 
 Each training instance contributes image embeddings of its training renders (views spread over
 the hemisphere; computed once and cached, ``model.prior.embedding_cache``) and text embeddings of
-its caption and paraphrases (``model.prior.captions``). Every step draws a batch mixing both
-kinds; an input is the joint embedding with only its own modality's slot filled, and its target
-is the instance. With the regression head (the default) the loss is the mean squared error to
+its caption and paraphrases (``model.prior.captions``), plus composed captions naming each shape in
+colours none of its instances wears, whose target is that shape's code with the colour code of an
+instance in that colour. Every step draws a batch mixing images and texts; an input is the joint
+embedding with only its own modality's slot filled, and its target is a (shape, colour) pair of
+instances (the same instance but for composed captions). With the regression head (the default) the loss is the mean squared error to
 the instance's codes in standardised units, the paper's L_Delta; with the codebook head it is the
 cross-entropy of the shape logits against the instance's shape and of the colour logits against
 the instance. AdamW with a cosine learning-rate decay.
@@ -21,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import random
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +35,8 @@ from tqdm import tqdm
 
 from model.data.dataset import load_index
 from model.nerf import config
-from model.prior.captions import attributes, training_captions
+from model.data.colours import PALETTE
+from model.prior.captions import attributes, composed_captions, training_captions
 from model.prior.embedders import embed_texts, load_embedder
 from model.prior.embedding_cache import view_embeddings
 from model.prior.io import load_prior
@@ -57,12 +61,16 @@ class QueryTrainConfig:
     lr: float = 1e-3
     weight_decay: float = 1e-4
     text_fraction: float = 0.3
+    composed_per_pair: int = 8
+    """Composed captions per (shape, colour it is never rendered in); 0 trains on own captions only."""
     seed: int = 0
 
     def __post_init__(self):
         for name in ("views_per_instance", "steps", "batch"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}")
+        if self.composed_per_pair < 0:
+            raise ValueError(f"composed_per_pair must be 0 or more, got {self.composed_per_pair}")
         if not 0.0 <= self.text_fraction <= 1.0:
             raise ValueError(f"text_fraction must be in [0, 1], got {self.text_fraction}")
 
@@ -84,13 +92,40 @@ def image_embeddings(embedder, data: Path, ids: list[str], split: str, count: in
     return torch.stack(rows)
 
 
-def caption_embeddings(embedder, entries: list[dict]) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
-    """Embeddings ``[T, E]`` of every instance's captions, the instance of each ``[T]``, and the texts."""
+def caption_targets(entries: list[dict], shape_of: list[int], composed_per_pair: int, seed: int = 0) -> tuple[list[str], list[tuple[int, int]]]:
+    """Every training text and its target ``(shape instance, colour instance)``: each instance's
+    own captions (itself twice), then ``composed_per_pair`` composed captions for each shape and
+    each palette colour none of its instances wears, aimed at the shape's first instance and an
+    instance wearing that colour (drawn with a seeded generator)."""
     texts, owners = [], []
     for n, entry in enumerate(entries):
         for text in training_captions(str(entry.get("caption", "")), attributes(entry)):
             texts.append(text)
-            owners.append(n)
+            owners.append((n, n))
+    if composed_per_pair:
+        rng = random.Random(seed)
+        colours = [attributes(entry).colour for entry in entries]
+        wearers = {c: [n for n, colour in enumerate(colours) if colour == c] for c in PALETTE}
+        first = {}
+        for n, shape in enumerate(shape_of):
+            first.setdefault(shape, n)
+        for shape, n in first.items():
+            own = {colours[m] for m, s in enumerate(shape_of) if s == shape}
+            attrs = attributes(entries[n])
+            for colour in PALETTE:
+                if colour in own or not wearers[colour]:
+                    continue
+                donor = rng.choice(wearers[colour])
+                captions = composed_captions(attrs, colour)
+                for text in rng.sample(captions, min(composed_per_pair, len(captions))):
+                    texts.append(text)
+                    owners.append((n, donor))
+    return texts, owners
+
+
+def caption_embeddings(embedder, entries: list[dict], shape_of: list[int], composed_per_pair: int = 0, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+    """Embeddings ``[T, E]`` of every training text, its target instances ``[T, 2]`` (shape, colour), and the texts."""
+    texts, owners = caption_targets(entries, shape_of, composed_per_pair, seed)
     return embed_texts(embedder, texts), torch.tensor(owners), texts
 
 
@@ -111,7 +146,7 @@ def train_query(run: Path, data: Path, out: Path, cfg: QueryTrainConfig, device=
     text_embedder = load_embedder(cfg.text_embedder) if cfg.text_embedder else None
     embedders = [image_embedder] + ([text_embedder] if text_embedder is not None and text_embedder is not image_embedder else [])
     views = image_embeddings(image_embedder, data, ids, "train", cfg.views_per_instance, progress)
-    texts = caption_embeddings(text_embedder, entries) if text_embedder is not None else None
+    texts = caption_embeddings(text_embedder, entries, shape_of.tolist(), cfg.composed_per_pair, cfg.seed) if text_embedder is not None else None
     log.info("training the query network on %d instances: %d views each%s", len(ids), views.shape[1],
              f", {len(texts[2])} captions" if texts else "")
 
@@ -136,17 +171,19 @@ def train_query(run: Path, data: Path, out: Path, cfg: QueryTrainConfig, device=
         picks = torch.randint(0, n_instances * n_views, (cfg.batch - text_count,), generator=generator)
         inputs = torch.zeros(cfg.batch, net.input_dim, device=device)
         inputs[: len(picks), image_slot.offset : image_slot.offset + image_slot.dim] = flat_views[picks.to(device)]
-        owners = picks // n_views
+        owners = (picks // n_views)[:, None].expand(-1, 2)
         if text_count:
             chosen = torch.randint(0, len(texts[1]), (text_count,), generator=generator)
             inputs[len(picks) :, text_slot.offset : text_slot.offset + text_slot.dim] = texts[0][chosen].to(device)
             owners = torch.cat([owners, texts[1][chosen]])
-        owners = owners.to(device)
+        shape_owner, color_owner = owners.to(device).unbind(1)
         output = net.outputs(inputs)
         if cfg.query.head == "codebook":
-            loss = F.cross_entropy(output[:, : len(shapes)], shape_of[owners]) + F.cross_entropy(output[:, len(shapes) :], owners)
+            loss = F.cross_entropy(output[:, : len(shapes)], shape_of[shape_owner]) + F.cross_entropy(output[:, len(shapes) :], color_owner)
         else:
-            loss = F.mse_loss(output, targets[owners])
+            split = shape_book.shape[1]
+            target = torch.cat([targets[shape_owner, :split], targets[color_owner, split:]], dim=1)
+            loss = F.mse_loss(output, target)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
@@ -162,6 +199,7 @@ def train_query(run: Path, data: Path, out: Path, cfg: QueryTrainConfig, device=
         "instances": len(ids),
         "views_per_instance": n_views,
         "captions": len(texts[2]) if texts else 0,
+        "composed_captions": int((texts[1][:, 0] != texts[1][:, 1]).sum()) if texts else 0,
         "steps": cfg.steps,
         "final_loss": history[-1]["loss"],
         "wall_s": time.perf_counter() - start,
