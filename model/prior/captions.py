@@ -88,11 +88,11 @@ TRAIN_COLOUR_WORDS = {
 # type paraphrases for training captions, disjoint from the held-out type words below
 TRAIN_TYPE_WORDS = {
     "armchair": ("chair with arms", "easy chair"),
-    "stool": ("bar stool", "seat without a back"),
+    "stool": ("bar stool", "tall stool"),
     "lounge chair": ("reclining chair", "sun lounger"),
     "folding chair": ("foldable chair", "camping chair"),
     "high chair": ("baby chair", "feeding chair"),
-    "chair": ("side chair", "seat with a back"),
+    "chair": ("side chair", "kitchen chair"),
 }
 # type words for held-out prompts, one per type (the training nouns are catalogue names)
 TYPE_WORDS = {
