@@ -191,6 +191,26 @@ def test_codebook_head_outputs_codebook_entries(tmp_path):
     assert back.codebook_sizes == (4, 5) and torch.allclose(back(torch.ones(1, 6))[0], shape[:1], atol=1e-4)
 
 
+def test_shape_codebook_head_classifies_the_shape_and_regresses_the_colour(tmp_path):
+    slots = [InputSlot("img", ("image",), 6, 0, "v1")]
+    with pytest.raises(ValueError, match="codebook sizes"):
+        QueryNetwork(QueryConfig(hidden=8, layers=1, head="shape-codebook"), slots, 3, 2)
+    net = QueryNetwork(QueryConfig(hidden=8, layers=1, dropout=0.0, head="shape-codebook"), slots, 3, 2, codebook=(4, 5))
+    shapes, colors = torch.randn(4, 3), torch.randn(5, 2)
+    net.set_code_statistics(shapes, colors)
+    assert net.mlp[-1].out_features == 4 + 2 and not hasattr(net, "color_book")
+    with torch.no_grad():
+        net.mlp[-1].weight.zero_()
+        net.mlp[-1].bias.copy_(torch.tensor([0, 9.0, 0, 0, 1.5, -0.5]))
+    shape, color = net.eval()(torch.randn(2, 6))
+    assert torch.allclose(shape, shapes[1].expand(2, -1))
+    expected = torch.tensor([1.5, -0.5]) * colors.std(0, unbiased=False) + colors.mean(0)  # standardised units back to codes
+    assert torch.allclose(color, expected.expand(2, -1), atol=1e-5)
+    save_query(tmp_path / "q", net)
+    back = load_query(tmp_path / "q")
+    assert back.cfg.head == "shape-codebook" and all(torch.allclose(a, b) for a, b in zip(back(torch.ones(1, 6)), net(torch.ones(1, 6))))
+
+
 def test_retrieve_ranks_by_cosine_and_rejects_bad_shapes():
     bank = torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.7, 0.7]])
     indices, scores = retrieve(torch.tensor([2.0, 0.1]), bank, k=2)
@@ -404,6 +424,20 @@ def test_tto_started_from_the_query_guess(query_run, chairs):
     starts = report["rows"][0]["starts"]
     assert set(starts) == {"query", "mean", "nearest"} and starts["query"]["init"] == "given" and starts["mean"]["init"] == "mean"
     assert all(s["time_to_target_s"] is not None and s["held_out_psnr"] > 0 for s in starts.values())
+
+
+def test_shape_codebook_head_trains_and_answers_with_a_codebook_shape(trained, chairs, tmp_path):
+    from model.prior.query import QueryPipeline
+    from model.train.query import QueryTrainConfig, train_query
+
+    run, _ = trained
+    cfg = QueryTrainConfig(query=QueryConfig(hidden=32, layers=1, head="shape-codebook"), views_per_instance=2, validation_views=1, steps=30, batch=32)
+    summary = train_query(run, chairs, tmp_path / "q", cfg, progress=False)
+    assert summary["final_loss"] > 0 and summary["validation"]["queries"] == summary["instances"]
+    pipeline = QueryPipeline.from_runs(run, tmp_path / "q")
+    shape, color = pipeline.codes(pipeline.embed(text="a green chair"), snap=False)
+    assert any(torch.equal(shape[0], row) for row in pipeline.shape_book)
+    assert not any(torch.equal(color[0], row) for row in pipeline.color_book)  # regressed, snapped only on request
 
 
 def test_codebook_head_trains_and_answers_with_codebook_entries(trained, chairs, tmp_path):

@@ -29,6 +29,7 @@ def _write_json(path: str | Path, data: dict) -> None:
 
 
 def register_train(parser: argparse.ArgumentParser) -> None:
+    from model.prior.query import HEADS
     from model.train.query import QueryTrainConfig
 
     defaults = QueryTrainConfig()
@@ -42,8 +43,9 @@ def register_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--text-fraction", type=float, default=defaults.text_fraction, help="share of each batch that is caption embeddings")
     parser.add_argument("--image-embedder", default=defaults.image_embedder, choices=["efficientnet-lite0", "clip"])
     parser.add_argument("--text-embedder", default=defaults.text_embedder, choices=["minilm", "clip", ""], help="'' trains an image-only network")
-    parser.add_argument("--head", default=defaults.query.head, choices=["codebook", "regression"],
-                        help="codebook: attention over the codebook, trained as classification; regression: the paper's L2 onto the codes")
+    parser.add_argument("--head", default=defaults.query.head, choices=list(HEADS),
+                        help="codebook: attention over the codebook, trained as classification; regression: the paper's L2 onto the codes; "
+                             "shape-codebook: the shape classified, the colour code regressed")
     parser.add_argument("--composed", type=int, default=defaults.composed_per_pair,
                         help="composed captions per (shape, colour none of its instances wears), aimed at that shape with another "
                              f"instance's colour code (default {defaults.composed_per_pair}; 0: own captions only)")

@@ -40,7 +40,7 @@ QUERY_META = "query.json"
 QUERY_FORMAT = 1
 
 
-HEADS = ("codebook", "regression")
+HEADS = ("codebook", "regression", "shape-codebook")
 
 
 @dataclass
@@ -53,7 +53,10 @@ class QueryConfig:
       colour code, so an ambiguous prompt picks one fitting codebook entry instead of decoding
       the mean of all that fit (a faded blend);
     - ``regression`` (default): the codes themselves, in codebook-standardised units (the paper's
-      L_Delta); callers snap them to the codebook (:func:`snap_codes`) to avoid blends.
+      L_Delta); callers snap them to the codebook (:func:`snap_codes`) to avoid blends;
+    - ``shape-codebook``: logits over the shape codes (a classification of the shape: a prompt's
+      type picks one fitting shape instead of landing between shapes) and the colour code by
+      regression (colours a prompt names are compositions the colour codebook may lack).
     """
 
     hidden: int = 512
@@ -114,7 +117,7 @@ class QueryNetwork(nn.Module):
     def __init__(self, cfg: QueryConfig, slots: list[InputSlot], shape_dim: int, color_dim: int, meta: dict | None = None,
                  codebook: tuple[int, int] = (0, 0)):
         super().__init__()
-        if cfg.head == "codebook" and min(codebook) < 1:
+        if cfg.head != "regression" and min(codebook) < 1:
             raise ValueError("a codebook head needs the codebook sizes (shapes, colours)")
         if not slots:
             raise ValueError("a query network needs at least one embedder")
@@ -127,14 +130,16 @@ class QueryNetwork(nn.Module):
         for _ in range(cfg.layers):
             blocks += [nn.Linear(width, cfg.hidden), nn.LayerNorm(cfg.hidden), nn.GELU(), nn.Dropout(cfg.dropout)]
             width = cfg.hidden
-        self.codebook_sizes = tuple(int(n) for n in codebook) if cfg.head == "codebook" else (0, 0)
-        outputs = sum(self.codebook_sizes) if cfg.head == "codebook" else self.shape_dim + self.color_dim
+        self.codebook_sizes = tuple(int(n) for n in codebook) if cfg.head != "regression" else (0, 0)
+        outputs = {"codebook": sum(self.codebook_sizes), "regression": self.shape_dim + self.color_dim,
+                   "shape-codebook": self.codebook_sizes[0] + self.color_dim}[cfg.head]
         blocks.append(nn.Linear(width, outputs))
         self.mlp = nn.Sequential(*blocks)
         self.register_buffer("code_mean", torch.zeros(self.shape_dim + self.color_dim))
         self.register_buffer("code_scale", torch.ones(self.shape_dim + self.color_dim))
-        if cfg.head == "codebook":
+        if cfg.head != "regression":
             self.register_buffer("shape_book", torch.zeros(self.codebook_sizes[0], self.shape_dim))
+        if cfg.head == "codebook":
             self.register_buffer("color_book", torch.zeros(self.codebook_sizes[1], self.color_dim))
         self.meta = dict(meta or {})
 
@@ -172,23 +177,28 @@ class QueryNetwork(nn.Module):
         scale = torch.cat([shape_codes.std(0, unbiased=False), color_codes.std(0, unbiased=False)])
         self.code_mean.copy_(codes)
         self.code_scale.copy_(scale.clamp_min(1e-6))
-        if self.cfg.head == "codebook":
+        if self.cfg.head != "regression":
             if (len(shape_codes), len(color_codes)) != self.codebook_sizes:
                 raise ValueError(f"this codebook head has {self.codebook_sizes} entries, got {(len(shape_codes), len(color_codes))}")
             self.shape_book.copy_(shape_codes)
+        if self.cfg.head == "codebook":
             self.color_book.copy_(color_codes)
 
     def outputs(self, embedding: torch.Tensor) -> torch.Tensor:
-        """The head's raw output ``[B, K]``: standardised codes (regression) or shape then colour logits (codebook)."""
+        """The head's raw output ``[B, K]``: standardised codes (regression), shape then colour logits
+        (codebook), or shape logits then the standardised colour code (shape-codebook)."""
         if embedding.ndim != 2 or embedding.shape[1] != self.input_dim:
             raise ValueError(f"the query network takes joint embeddings [B, {self.input_dim}], got {tuple(embedding.shape)}")
         return self.mlp(embedding)
 
     def forward(self, embedding: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         out = self.outputs(embedding)
+        shapes = self.codebook_sizes[0]
         if self.cfg.head == "codebook":
-            shapes = self.codebook_sizes[0]
             return self.shape_book[out[:, :shapes].argmax(dim=1)], self.color_book[out[:, shapes:].argmax(dim=1)]
+        if self.cfg.head == "shape-codebook":
+            color = out[:, shapes:] * self.code_scale[self.shape_dim :] + self.code_mean[self.shape_dim :]
+            return self.shape_book[out[:, :shapes].argmax(dim=1)], color
         codes = out * self.code_scale + self.code_mean
         return codes[:, : self.shape_dim], codes[:, self.shape_dim :]
 

@@ -9,7 +9,7 @@ embedding with only its own modality's slot filled, and its target is a (shape, 
 instances (the same instance but for composed captions). With the regression head (the default) the loss is the mean squared error to
 the instance's codes in standardised units, the paper's L_Delta; with the codebook head it is the
 cross-entropy of the shape logits against the instance's shape and of the colour logits against
-the instance. AdamW with a cosine learning-rate decay.
+the instance; with the shape-codebook head, the shape's cross-entropy plus the colour code's squared error. AdamW with a cosine learning-rate decay.
 
 Held-out views (the dataset's test frames, never trained on) give the top-1 retrieval printed
 at the end: the nearest codebook instance to the predicted codes.
@@ -180,6 +180,9 @@ def train_query(run: Path, data: Path, out: Path, cfg: QueryTrainConfig, device=
         output = net.outputs(inputs)
         if cfg.query.head == "codebook":
             loss = F.cross_entropy(output[:, : len(shapes)], shape_of[shape_owner]) + F.cross_entropy(output[:, len(shapes) :], color_owner)
+        elif cfg.query.head == "shape-codebook":
+            loss = F.cross_entropy(output[:, : len(shapes)], shape_of[shape_owner]) + F.mse_loss(
+                output[:, len(shapes) :], targets[color_owner, shape_book.shape[1] :])
         else:
             split = shape_book.shape[1]
             target = torch.cat([targets[shape_owner, :split], targets[color_owner, split:]], dim=1)
