@@ -22,18 +22,19 @@ QUERY = ROOT / "runs" / "query" / "cpu"
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--views", type=int, default=24, help="training renders embedded per instance")
+    parser.add_argument("--views", type=int, default=48, help="training renders embedded per instance")
+    parser.add_argument("--head", default="shape-codebook", help="the query network's head (see hypnerf train-query --help)")
     parser.add_argument("--query-views", type=int, default=2, help="new random views per instance for retrieval")
     parser.add_argument("--prompts", type=int, default=40)
     parser.add_argument("--samples", type=int, default=12)
-    parser.add_argument("--tto-objects", type=int, default=2, help="unseen test objects for TTO started from the query (0 skips it)")
+    parser.add_argument("--tto-objects", type=int, default=11, help="unseen test objects for TTO started from the query (0 skips it)")
     args = parser.parse_args(argv)
     if not (PRIOR / "hypernet.safetensors").is_file():
         print(f"{PRIOR} holds no trained prior; run `python -m benchmarks.bench_prior` first", file=sys.stderr)
         return 1
     RESULTS.mkdir(parents=True, exist_ok=True)
     if not (QUERY / "query.safetensors").is_file():
-        hypnerf("train-query", "--run", str(PRIOR), "--data", str(DATA), "--out", str(QUERY), "--views", str(args.views))
+        hypnerf("train-query", "--run", str(PRIOR), "--data", str(DATA), "--out", str(QUERY), "--views", str(args.views), "--head", args.head)
     if not (RESULTS / "retrieval.json").is_file():
         hypnerf("eval", "retrieval", "--run", str(PRIOR), "--data", str(DATA), "--query", str(QUERY), "--views", str(args.query_views),
                 "--json", str(RESULTS / "retrieval.json"), "--grid", str(RESULTS / "retrieval_clutter.png"))

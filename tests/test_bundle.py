@@ -42,23 +42,26 @@ def bundle_dir(trained, chairs, tmp_path_factory) -> Path:
     return export_bundle(run, tmp_path_factory.mktemp("bundles") / "tiny", data=chairs)
 
 
-@pytest.fixture(scope="module")
-def query_run(trained, tmp_path_factory) -> Path:
+def _query_folder(run: Path, folder: Path, head: str = "regression") -> Path:
     """A query-network run of the tiny prior as `hypnerf train-query` lays it out (untrained weights, small embedding slots)."""
-    run, _ = trained
     prior = load_prior(run)
     ids = [inst["id"] for inst in prior.instances]
     with torch.no_grad():
         shape_book, color_book = prior.net.codes(torch.arange(len(ids)))
     slots = [InputSlot("efficientnet-lite0", ("image",), IMAGE_DIM, 0, "image-v1"), InputSlot("minilm", ("text",), TEXT_DIM, IMAGE_DIM, "text-v1")]
     torch.manual_seed(0)
-    net = QueryNetwork(QueryConfig(hidden=32, layers=2), slots, shape_book.shape[1], color_book.shape[1],
-                       {"embedders": ["efficientnet-lite0", "minilm"], "instances": ids})
-    net.set_code_statistics(shape_book, color_book)
-    folder = tmp_path_factory.mktemp("query")
+    net = QueryNetwork(QueryConfig(hidden=32, layers=2, head=head), slots, shape_book.shape[1], color_book.shape[1],
+                       {"embedders": ["efficientnet-lite0", "minilm"], "instances": ids}, (prior.net.shape_codes.num_embeddings, len(ids)))
+    net.set_code_statistics(prior.net.shape_codes.weight.detach() if head != "regression" else shape_book, color_book)
     save_query(folder, net.eval())
     save_file({"image": F.normalize(torch.randn(len(ids), IMAGE_DIM), dim=-1)}, str(folder / "bank.safetensors"))
     return folder
+
+
+@pytest.fixture(scope="module")
+def query_run(trained, tmp_path_factory) -> Path:
+    run, _ = trained
+    return _query_folder(run, tmp_path_factory.mktemp("query"))
 
 
 @pytest.fixture(scope="module")
@@ -267,6 +270,23 @@ def test_query_network_in_onnx_matches_torch(full_bundle, query_run):
         query.retrieve(np.ones(query.input_dim, np.float32) * np.r_[np.zeros(IMAGE_DIM), np.ones(TEXT_DIM)], k=3)
     with pytest.raises(ValueError, match=f"{query.input_dim} finite numbers"):
         query.codes(np.zeros(3))
+
+
+@pytest.mark.parametrize("head", ["shape-codebook", "codebook"])
+def test_codebook_heads_export_with_each_weight_once_and_match_torch(trained, chairs, tmp_path, head):
+    run, _ = trained
+    folder = _query_folder(run, tmp_path / "query", head)
+    bundle = load_bundle(export_bundle(run, tmp_path / "bundle", data=chairs, query=folder), threads=1)
+    torch_net = load_query(folder)
+    embeddings = torch.randn(4, bundle.query.input_dim)
+    with torch.no_grad():
+        shape, color = torch_net(embeddings)
+    for row in range(4):
+        raw = bundle.query.codes(embeddings[row].numpy(), snap=False)
+        assert np.abs(raw[0] - shape[row].numpy()).max() <= PARITY_TOLERANCE
+        assert np.abs(raw[1] - color[row].numpy()).max() <= PARITY_TOLERANCE
+        assert any(np.array_equal(raw[0], code) for code in bundle.shape_codes)  # the shape is a codebook entry
+    assert query_parity(bundle) <= PARITY_TOLERANCE
 
 
 class _Embedder:

@@ -194,11 +194,13 @@ class QueryNetwork(nn.Module):
     def forward(self, embedding: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         out = self.outputs(embedding)
         shapes = self.codebook_sizes[0]
+        # F.embedding exports as a Gather on the stored codebook (indexing was exported with a derived copy of it)
         if self.cfg.head == "codebook":
-            return self.shape_book[out[:, :shapes].argmax(dim=1)], self.color_book[out[:, shapes:].argmax(dim=1)]
+            return F.embedding(out[:, :shapes].argmax(dim=1), self.shape_book), F.embedding(out[:, shapes:].argmax(dim=1), self.color_book)
         if self.cfg.head == "shape-codebook":
-            color = out[:, shapes:] * self.code_scale[self.shape_dim :] + self.code_mean[self.shape_dim :]
-            return self.shape_book[out[:, :shapes].argmax(dim=1)], color
+            # scale the whole code and slice the result: a slice of a buffer would be exported as a second copy of it
+            codes = torch.cat([out.new_zeros(out.shape[0], self.shape_dim), out[:, shapes:]], dim=1) * self.code_scale + self.code_mean
+            return F.embedding(out[:, :shapes].argmax(dim=1), self.shape_book), codes[:, self.shape_dim :]
         codes = out * self.code_scale + self.code_mean
         return codes[:, : self.shape_dim], codes[:, self.shape_dim :]
 
