@@ -21,6 +21,7 @@ COMMANDS = {
     "poses": "python -m benchmarks.bench_inversion --stage poses --objects 3",
     "shapes": "OMP_NUM_THREADS=1 python -m benchmarks.bench_shapes  (hypnerf data import-sh3d --augment 2, hypnerf train --steps 4000 per row, hypnerf eval generalization --rows tto,nearest,mean_code)",
     "variational": "OMP_NUM_THREADS=1 python -m benchmarks.bench_shapes  (hypnerf train --code-noise 0.5, hypnerf eval generalization, hypnerf eval sampling)",
+    "query_variants": "hypnerf train-query --run runs/prior-cpu --data data/sh3d-chair-variants --out runs/query/<variant> --views 48 [--head codebook|shape-codebook], then hypnerf eval retrieval --views 2 and hypnerf eval text-to-nerf --prompts 40 on each (the rows' commands are in benchmarks/results/query_variants.json)",
     "query_tto": "hypnerf eval query-tto --run runs/prior-cpu --data data/sh3d-chair-variants --query runs/query/cpu --objects 11 --json benchmarks/results/query_tto.json",
     "denoise": "OMP_NUM_THREADS=1 python -m benchmarks.bench_denoise  (after hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants --out runs/denoise/denoiser --steps 3000 --instances 0)",
     "retrieval": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf train-query, then hypnerf eval retrieval --views 2)",
@@ -365,6 +366,18 @@ def _test_cells(row: dict | None) -> list[str]:
     return [f"{row['psnr']:.2f}", f"{row['psnr_fg']:.2f}"] if row else ["", ""]
 
 
+def query_variants_section(data: dict) -> list[str]:
+    rows = [[name, f"{100 * r['top1']:.1f}", f"{100 * r['shape_top1']:.1f}", f"{100 * r['cluttered_grabcut_box_top1']:.1f}",
+             f"{100 * r['colour_accuracy']:.1f}", f"{100 * r['type_accuracy']:.1f}", f"{100 * r['colour_and_type']:.1f}",
+             f"{100 * r['colour_palette_words']:.1f} / {100 * r['colour_synonyms']:.1f}", f"{100 * r['colour_and_type_palette_words']:.1f}"]
+            for name, r in data["rows"].items()]
+    return ["## Query network variants", "",
+            f"The same {data['queries']} retrieval queries (new poses) and {data['prompts']} held-out prompts for each variant; "
+            f"{data['selection_note'].rstrip('.')}.", "",
+            *_table(["variant", "retrieval top-1 %", "shape top-1 %", "cluttered (GrabCut box) top-1 %", "text colour %", "text type %",
+                     "colour and type %", "colour: palette words / held-out synonyms %", "colour and type, palette words %"], rows), ""]
+
+
 def shapes_section(data: dict) -> list[str]:
     rows = []
     for r in data["rows"].values():
@@ -540,6 +553,7 @@ def main() -> int:
         ("denoise", denoise_section),
         ("retrieval", retrieval_section),
         ("text_to_nerf", text_to_nerf_section),
+        ("query_variants", query_variants_section),
         ("sampling", sampling_section),
         ("service", service_section),
     )
