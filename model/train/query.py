@@ -6,10 +6,11 @@ its caption and paraphrases (``model.prior.captions``), plus composed captions n
 colours none of its instances wears, whose target is that shape's code with the colour code of an
 instance in that colour. Every step draws a batch mixing images and texts; an input is the joint
 embedding with only its own modality's slot filled, and its target is a (shape, colour) pair of
-instances (the same instance but for composed captions). With the regression head (the default) the loss is the mean squared error to
-the instance's codes in standardised units, the paper's L_Delta; with the codebook head it is the
-cross-entropy of the shape logits against the instance's shape and of the colour logits against
-the instance; with the shape-codebook head, the shape's cross-entropy plus the colour code's squared error. AdamW with a cosine learning-rate decay.
+instances (the same instance but for composed captions). With the regression head (the default)
+the loss is the mean squared error to the codes in standardised units, the paper's L_Delta; with
+the codebook head it is the cross-entropy of the shape logits against the target's shape and of
+the colour logits against the colour instance; with the shape-codebook head, the shape's
+cross-entropy plus the colour code's squared error. AdamW with a cosine learning-rate decay.
 
 Held-out views (the dataset's test frames, never trained on) give the top-1 retrieval printed
 at the end: the nearest codebook instance to the predicted codes.
