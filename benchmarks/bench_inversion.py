@@ -164,7 +164,8 @@ def poses(objects: int, eval_views: int = 12) -> None:
 
     def score(result, evaluation) -> dict:
         rgb, opacity, _, _ = render_views(result.params, field, evaluation, RenderConfig(), result.grid, prior.scene)
-        return image_quality(rgb, evaluation.images, opacity)
+        # the scalars only: image_quality also returns per-view lists and the foreground's definition
+        return {k: v for k, v in image_quality(rgb, evaluation.images, opacity).items() if isinstance(v, float)}
 
     for object_id in test_objects(DATA, objects):
         held = load_views(DATA / object_id, "test").subset([0])
@@ -182,7 +183,7 @@ def poses(objects: int, eval_views: int = 12) -> None:
         q = score(unknown, evaluation)
         q["final_error_deg"] = float(rotation_error_deg(unknown.c2w[0], held.c2w[0]))
         rows.setdefault("unknown", []).append(q)
-        print(object_id, {k: round(v[-1]["psnr_fg"], 2) for k, v in rows.items()}, flush=True)
+        print(object_id, {k: (round(v[-1]["psnr_fg"], 2), round(v[-1].get("final_error_deg", 0.0), 1)) for k, v in rows.items()}, flush=True)
     summary = {k: {m: float(np.mean([r[m] for r in v])) for m in v[0]} for k, v in rows.items()}
     summary["unknown"]["success_rate"] = float(np.mean([r["final_error_deg"] < 15.0 for r in rows["unknown"]]))
     write_result("poses", {"rows": summary, "objects": objects, "evaluation_views": eval_views, "per_object": rows,
