@@ -490,7 +490,8 @@ def text_to_nerf_section(data: dict) -> list[str]:
         lines += [f"The colour measure itself agrees with the captions on {100 * truth['agreement']:.1f}% of ground-truth renders.", ""]
     if timing:
         lines += ["Time per query (ms, " + f"{timing.get('threads', '?')} thread(s)): " + ", ".join(
-            f"{k.replace('_', ' ')} {v:.1f}" for k, v in timing.items() if isinstance(v, (int, float)) and k not in ("threads", "render_resolution")) + ".", ""]
+            f"{k.replace('_', ' ')} {v:.1f}" for k, v in timing.items() if isinstance(v, (int, float)) and k not in ("threads", "render_resolution")) + "."
+            + (f" Timing: {data['timing_note']}." if data.get("timing_note") else ""), ""]
     return lines
 
 
