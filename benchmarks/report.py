@@ -417,7 +417,8 @@ def query_tto_section(data: dict) -> list[str]:
              f"{r['held_out_psnr']:.2f}", f"{r['held_out_psnr_fg']:.2f}", f"{r['wall_s']:.1f}"] for start, r in data["summary"].items()]
     return ["## TTO started from the query network's guess", "",
             f"{data['objects']} unseen test chairs, one input view, {data['steps']} TTO steps from each start (no early stopping). "
-            f"Target: {data['target']}." + (f" Timing: {data['timing_note']}." if data.get("timing_note") else ""), "",
+            + (f"Query network: {data['query_network']}. " if data.get("query_network") else "")
+            + f"Target: {data['target']}." + (f" Timing: {data['timing_note']}." if data.get("timing_note") else ""), "",
             *_table(["start", "input-view PSNR at step 0 (dB)", "time to target (s)", "held-out full (dB)", "held-out fg (dB)", "wall s"], rows), ""]
 
 
