@@ -59,14 +59,12 @@ test: install
 
 bench: install
 	$(BIN)/pip install --quiet --no-deps nerfstudio==1.1.5 jaxtyping wadler_lindig rich viser msgspec websockets zstandard
-	$(BIN)/pip install --quiet 'matplotlib>=3.8'
 	$(BIN)/python -m benchmarks.run_all
 
 # The category prior (hours on 2 cores): dataset with colour variants, training, compression,
 # ablation, disentanglement, then the hypernetwork presets compared. Stages already done are
 # skipped; training resumes where it stopped.
 bench-prior: install
-	$(BIN)/pip install --quiet 'matplotlib>=3.8'
 	$(BIN)/python -m benchmarks.bench_prior
 	$(BIN)/python -m benchmarks.bench_presets
 	$(BIN)/python -m benchmarks.report
@@ -76,7 +74,6 @@ bench-prior: install
 # and the service's latency on the demo bundle. One thread each: oversubscribed cores run torch
 # many times slower.
 bench-models: install
-	$(BIN)/pip install --quiet 'matplotlib>=3.8'
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.bench_inversion
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.bench_query
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.bench_denoise

@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--views", type=int, default=48, help="training renders embedded per instance")
     parser.add_argument("--head", default="shape-codebook", help="the query network's head (see hypnerf train-query --help)")
     parser.add_argument("--query-views", type=int, default=2, help="new random views per instance for retrieval")
-    parser.add_argument("--prompts", type=int, default=40)
+    parser.add_argument("--prompts", type=int, default=80, help="held-out prompts asked for (fewer when fewer (colour, type) pairs exist)")
     parser.add_argument("--samples", type=int, default=12)
     parser.add_argument("--tto-objects", type=int, default=11, help="unseen test objects for TTO started from the query (0 skips it)")
     args = parser.parse_args(argv)
@@ -41,6 +41,10 @@ def main(argv: list[str] | None = None) -> int:
     if not (RESULTS / "text_to_nerf.json").is_file():
         hypnerf("eval", "text-to-nerf", "--run", str(PRIOR), "--data", str(DATA), "--query", str(QUERY), "--prompts", str(args.prompts),
                 "--json", str(RESULTS / "text_to_nerf.json"), "--grid", str(RESULTS / "text_to_nerf.png"))
+    if not (RESULTS / "text_to_nerf_no_colour_words.json").is_file():  # the same prompts embedded as they are
+        hypnerf("eval", "text-to-nerf", "--run", str(PRIOR), "--data", str(DATA), "--query", str(QUERY), "--prompts", str(args.prompts),
+                "--no-colour-words", "--json", str(RESULTS / "text_to_nerf_no_colour_words.json"),
+                "--grid", str(ROOT / "runs" / "query" / "text_to_nerf_no_colour_words.png"))
     if not (RESULTS / "sampling.json").is_file():
         hypnerf("eval", "sampling", "--run", str(PRIOR), "--samples", str(args.samples), "--json", str(RESULTS / "sampling.json"),
                 "--grid", str(RESULTS / "sampling.png"), "--interpolation-grid", str(RESULTS / "interpolation.png"))

@@ -25,7 +25,7 @@ COMMANDS = {
     "query_tto": "hypnerf eval query-tto --run runs/prior-cpu --data data/sh3d-chair-variants --query runs/query/cpu --objects 11 --json benchmarks/results/query_tto.json",
     "denoise": "OMP_NUM_THREADS=1 python -m benchmarks.bench_denoise  (after hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants --out runs/denoise/denoiser --steps 3000 --instances 0)",
     "retrieval": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf train-query, then hypnerf eval retrieval --views 2)",
-    "text_to_nerf": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf eval text-to-nerf --prompts 40)",
+    "text_to_nerf": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf eval text-to-nerf --prompts 80, and again with --no-colour-words)",
     "sampling": "hypnerf eval sampling --run runs/prior-cpu --samples 12 --json benchmarks/results/sampling.json",
     "service": "python -m benchmarks.bench_service --bundle bundles/chair-demo --inversion-requests 2",
     "render": "python -m benchmarks.bench_render  (runs: hypnerf bench render --fit runs/bench-fit/masks/<first chair> --json benchmarks/results/render.json)",
@@ -476,14 +476,27 @@ def retrieval_section(data: dict) -> list[str]:
 
 
 def text_to_nerf_section(data: dict) -> list[str]:
-    rows = [["all held-out prompts", str(data["prompts"]), f"{100 * data['colour_accuracy']:.1f}", f"{100 * data['type_accuracy']:.1f}"]]
+    plain = _load("text_to_nerf_no_colour_words")
+
+    def cells(report: dict | None, key: str | None) -> list[str]:
+        part = (report if key is None else report.get(key)) if report else None
+        return [f"{100 * part['colour_accuracy']:.1f}", f"{100 * part['type_accuracy']:.1f}"] if part else ["", ""]
+
+    rows = [["all held-out prompts", str(data["prompts"]), *cells(data, None), *cells(plain, None)]]
     for key in ("palette_colour_words", "colour_synonyms", "pairs_in_training", "pairs_not_in_training"):
-        part = data.get(key)
-        if part:
-            rows.append([key.replace("_", " "), str(part["prompts"]), f"{100 * part['colour_accuracy']:.1f}", f"{100 * part['type_accuracy']:.1f}"])
+        if data.get(key):
+            rows.append([key.replace("_", " "), str(data[key]["prompts"]), *cells(data, key), *cells(plain, key)])
     timing = data.get("timing_ms", {})
+    known = data.get("synonyms_the_lexicon_knows")
     lines = ["## Text-to-NeRF", "", f"Colour: {data['colour_metric']}. Type: {data['type_metric']}.", "",
-             *_table(["prompts", "count", "colour %", "type %"], rows), "",
+             "Prompts are read with the colour lexicon (`model.prior.colour_words`: a colour name that is not a palette colour is "
+             "replaced by the palette colour nearest it in CIELAB, and the colour the prompt names restricts the snapped colour code to "
+             "instances wearing it); the last two columns embed the same prompts as they are"
+             + (" (`text_to_nerf_no_colour_words.json`)." if plain else " (not measured)."), "",
+             *_table(["prompts", "count", "colour %", "type %", "colour %, prompts as they are", "type %, prompts as they are"], rows), "",
+             *([f"Of the {data['colour_synonyms']['prompts']} held-out synonyms, the lexicon knows {known['prompts']} and reads "
+                f"{known['read_as_the_prompt_colour']} as the colour the prompt was written for; the rest are left to the query network.", ""]
+               if known else []),
              f"Target >= 90%: colour {'met' if data['colour_accuracy'] >= 0.9 else 'not met'}, type {'met' if data['type_accuracy'] >= 0.9 else 'not met'}. "
              "Grid: `benchmarks/results/text_to_nerf.png`.", ""]
     truth = data.get("colour_measure_on_ground_truth")

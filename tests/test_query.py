@@ -107,6 +107,21 @@ def test_object_crop_centres_the_object_and_rejects_an_empty_mask():
         prepare_images(torch.full((1, 4, 4, 4), float("nan")), 8)
 
 
+def test_a_query_image_and_its_mirror_embed_alike():
+    from model.prior.embedders import embed_images, embed_queries, load_embedder
+
+    embedder = load_embedder("efficientnet-lite0")
+    rgba = torch.zeros(2, 48, 48, 4)
+    rgba[:, 8:40, 6:20] = torch.tensor([0.8, 0.2, 0.1, 1.0])  # off-centre, so the mirror differs
+    rgba[1, 20:30, 20:44] = torch.tensor([0.1, 0.3, 0.9, 1.0])
+    queries = embed_queries(embedder, rgba)
+    assert queries.shape == (2, embedder.dim) and torch.allclose(queries.norm(dim=-1), torch.ones(2), atol=1e-5)
+    assert torch.allclose(embed_queries(embedder, rgba.flip(2)), queries, atol=1e-5)
+    plain, mirrored = embed_images(embedder, rgba), embed_images(embedder, rgba.flip(2))
+    assert not torch.allclose(plain, mirrored, atol=1e-3)
+    assert torch.allclose(queries, torch.nn.functional.normalize(plain + mirrored, dim=-1), atol=1e-5)
+
+
 def test_embeddings_are_cached_by_what_changes_them(tmp_path, chairs):
     from model.prior.embedding_cache import view_embeddings
 
@@ -285,6 +300,86 @@ def test_training_words_are_disjoint_from_held_out_words():
     held_types = {w for kind, words in TYPE_WORDS.items() for w in words if w != kind}  # the type names themselves are trained on
     assert not held_types & {w for words in TRAIN_TYPE_WORDS.values() for w in words}
     assert set(TRAIN_TYPE_WORDS) == set(TYPE_WORDS)
+
+
+def test_colour_vocabulary_files_survey_names_under_their_colour_and_never_a_held_out_word():
+    from model.data.colours import PALETTE, colour_names
+    from matplotlib.colors import XKCD_COLORS, to_rgb
+    from model.prior.captions import COLOUR_SYNONYMS, colour_vocabulary
+
+    vocabulary = colour_vocabulary()
+    assert set(vocabulary) == set(PALETTE)
+    assert all(len(words) >= 4 for words in vocabulary.values()) and sum(map(len, vocabulary.values())) > 300
+    held = {w for words in COLOUR_SYNONYMS.values() for w in words}
+    every = [w for words in vocabulary.values() for w in words]
+    assert len(every) == len(set(every))
+    assert not [w for w in every if any(h in w for h in held)]
+    assert "creme" not in every  # a near-spelling of the held-out "cream"
+    for colour, words in vocabulary.items():
+        assert colour in words  # the palette name is a survey name filed under itself
+        measured = colour_names(np.array([to_rgb(XKCD_COLORS["xkcd:" + w]) for w in words]))
+        assert set(measured) == {colour}
+        # a name's own palette word never contradicts where it is filed
+        assert not [w for w in words if any(p in w.split() for p in PALETTE if p != colour) and colour not in w.split()]
+
+
+def test_vocabulary_captions_name_the_colour_by_its_vocabulary():
+    from model.prior.captions import colour_vocabulary, vocabulary_captions
+    from model.train.query import caption_targets
+
+    nouns = ["stool", "bar stool"]
+    texts = vocabulary_captions(nouns, "green", 40, random.Random(3))
+    assert len(texts) == 40 and texts == vocabulary_captions(nouns, "green", 40, random.Random(3))
+    words = colour_vocabulary()["green"]
+    assert all(any(w in t for w in words) and any(n in t for n in nouns) for t in texts)
+    assert len({t for t in texts}) > 20  # words and templates vary
+    assert not set(texts) & {held_out_prompt("green", "stool", random.Random(k), synonym=s) for k in range(30) for s in (False, True)}
+    entries = [
+        {"caption": "a red armchair", "category": "chair", "name": "Club armchair"},
+        {"caption": "a green stool", "category": "chair", "name": "Bar stool"},
+    ]
+    base = caption_targets(entries, [0, 1], composed_per_pair=2, seed=0)
+    texts, owners = caption_targets(entries, [0, 1], composed_per_pair=2, seed=0, vocabulary=5)
+    assert len(texts) == len(base[0]) + 2 * 5 + 2 * 5  # each instance and each composed pair
+    kept = [(t, o) for t, o in zip(texts, owners) if t in base[0]]
+    assert kept == list(zip(*base))  # the other captions and their targets do not change
+    extra = [(t, o) for t, o in zip(texts, owners) if t not in base[0]]
+    vocab = colour_vocabulary()
+    for text, (shape, colour_owner) in extra:
+        colour = entries[colour_owner]["caption"].split()[1]
+        assert any(w in text for w in vocab[colour])
+        assert ("stool" in text) == (shape == 1)
+
+
+@pytest.mark.parametrize("prompt, read_as, name, palette", [
+    ("a photo of a crimson high chair", "a photo of a red high chair", "crimson", "red"),
+    ("An amber stool", "A yellow stool", "amber", "yellow"),  # the article follows the new word
+    ("a 3d model of a dusty rose chair", "a 3d model of a pink chair", "dusty rose", "pink"),  # the longest name wins
+    ("I would like an armchair painted gray", "I would like an armchair painted grey", "gray", "grey"),
+    ("a red leather armchair", "a red leather armchair", None, "red"),  # a palette word is kept, and nothing else read
+    ("render a jet folding chair", "render a jet folding chair", None, None),  # not a colour name the lexicon knows
+    ("a chair for my living room", "a chair for my living room", None, None),
+    ("", "", None, None),
+])
+def test_a_colour_name_is_read_as_its_palette_colour(prompt, read_as, name, palette):
+    from model.prior.colour_words import palette_prompt
+
+    read = palette_prompt(prompt)
+    assert (read.prompt, read.name, read.palette) == (read_as, name, palette)
+
+
+def test_the_colour_lexicon_reads_names_by_their_colour_not_their_spelling():
+    from model.data.colours import PALETTE
+    from model.prior.colour_words import PromptColour, colour_lexicon, palette_prompt
+
+    lexicon = colour_lexicon()
+    assert len(lexicon) > 1000 and all(0.0 <= v <= 1.0 for rgb in lexicon.values() for v in rgb)
+    assert all(palette_prompt(f"a {c} chair") == PromptColour(f"a {c} chair", c) for c in PALETTE)
+    # the survey's navy (#01153e) is nearer the palette's black than its blue in CIELAB; "navy blue"
+    # names a palette word and is left as it is
+    assert palette_prompt("a navy chair").palette == "black" and palette_prompt("a navy blue chair").name is None
+    assert palette_prompt("a navy blue chair").palette == "blue"
+    assert palette_prompt("a chartreuse chair").palette == "yellow"
 
 
 def test_composed_captions_aim_at_the_shape_and_a_wearer_of_the_colour():

@@ -251,6 +251,15 @@ def test_text_to_nerf_gives_a_nerf_of_codebook_codes_and_its_first_view(client, 
     png = client.get(made.json()["render_url"], params={"width": 32, "height": 32})
     assert png.status_code == 200 and Image.open(io.BytesIO(png.content)).size == (32, 32)
     assert client.post("/v1/text-to-nerf", json={"text": "a chair with four legs"}).json()["nerf"]["id"] == nerf["id"]
+    assert made.json()["read_as"] == "a chair with four legs" and made.json()["colour_word"] is None
+
+
+def test_text_to_nerf_reads_a_colour_name_as_its_palette_colour(client):
+    crimson = client.post("/v1/text-to-nerf", json={"text": "an Crimson chair"}).json()
+    assert crimson["read_as"] == "a red chair" and crimson["colour_word"] == {"name": "crimson", "palette": "red"}
+    red = client.post("/v1/text-to-nerf", json={"text": "a red chair"}).json()
+    assert red["read_as"] == "a red chair" and red["colour_word"] is None
+    assert crimson["nerf"]["id"] == red["nerf"]["id"]  # the network read the same prompt
 
 
 def test_retrieval_finds_the_instance_of_an_uploaded_view(client, chairs, ids):

@@ -60,6 +60,48 @@ def test_nearest_start_picks_a_training_instance(prior, unseen):
     assert result.init.startswith("nearest:") and 0 <= int(result.init.split(":")[1]) < prior.net.instances
 
 
+def test_the_two_round_nearest_scan_keeps_the_best_silhouettes_then_the_best_colour(prior, chairs):
+    from model.nerf.renderer import RenderConfig
+    from model.optimize.pose import PixelBank
+    from model.optimize.tto import instance_losses, nearest_instance
+
+    net, field, scene = prior.net, prior.net.cfg.field, prior.scene
+    shape_of = net.shape_index
+    shapes = int(shape_of.max()) + 1
+    assert net.instances > shapes  # colour variants share shapes
+    first = [int((shape_of == s).nonzero()[0]) for s in range(shapes)]
+    render = RenderConfig(samples_per_ray=32, termination_threshold=0.0)
+    calls = []
+    original = net.params_from_codes
+    net.params_from_codes = lambda *a: calls.append(1) or original(*a)
+    try:
+        for inst in prior.instances[:3]:
+            views = load_views(chairs / inst["id"], "train").subset([0])
+            batch = PixelBank(views.images, views.cameras, "cpu").sample(256, views.c2w, torch.Generator().manual_seed(0))
+            calls.clear()
+            full = nearest_instance(net, field, scene, batch, render, shortlist=0, silhouette=True)
+            assert len(calls) == net.instances
+            assert full == int(torch.argmin(instance_losses(net, field, scene, batch, render)))
+            calls.clear()
+            two_round = nearest_instance(net, field, scene, batch, render, shortlist=1, silhouette=True)
+            evaluated = len(calls)
+            best_shape = int(torch.argmin(instance_losses(net, field, scene, batch, render, first, silhouette=True)))
+            variants = (shape_of == best_shape).nonzero()[:, 0].tolist()
+            assert evaluated == shapes + len(variants) < net.instances
+            assert two_round == variants[int(torch.argmin(instance_losses(net, field, scene, batch, render, variants)))]
+            assert nearest_instance(net, field, scene, batch, render, shortlist=shapes, silhouette=True) == full
+    finally:
+        del net.params_from_codes
+    # density comes from the shape code alone, so colour variants have one silhouette score and
+    # the first variant stands for its shape without bias; their colour scores differ
+    silhouettes = instance_losses(net, field, scene, batch, render, list(range(net.instances)), silhouette=True)
+    colours = instance_losses(net, field, scene, batch, render)
+    for s in range(shapes):
+        same = shape_of == s
+        assert torch.allclose(silhouettes[same], silhouettes[same][0].expand(int(same.sum())), atol=1e-6)
+    assert not torch.allclose(colours[shape_of == 0], colours[shape_of == 0][0].expand(int((shape_of == 0).sum())))
+
+
 def test_progress_is_reported_and_should_stop_ends_the_run(prior, unseen):
     held, _ = unseen
     view = held.subset([0])

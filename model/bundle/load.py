@@ -36,6 +36,7 @@ from model.nerf import config
 from model.nerf.fields import Field, FieldParams
 from model.nerf.rays import Intrinsics
 from model.nerf.scene import SceneBox
+from model.prior.captions import caption_colour
 from model.prior.hypernet import HyperNetConfig, HyperNetwork
 
 
@@ -67,7 +68,8 @@ class Bundle:
         self._session = onnx_session(self.path / HYPERNET_ONNX, threads)
         self._outputs = [o.name for o in self._session.get_outputs()]
         components = manifest.get("components", [])
-        self.query = QueryModel(self.path, self.shape_codes, self.color_codes, threads=threads) if "query" in components else None
+        self.query = QueryModel(self.path, self.shape_codes, self.color_codes, threads=threads,
+                                instance_colours=[caption_colour(str(inst.get("caption", ""))) for inst in self.instances]) if "query" in components else None
         self.denoiser_path: Path | None = self.path / DENOISER_WEIGHTS if "denoiser" in components else None
         self._net: HyperNetwork | None = None
         self._net_lock = threading.Lock()

@@ -33,7 +33,8 @@ from model.bundle.manifest import (
     BundleError,
 )
 from model.bundle.runtime import onnx_session
-from model.prior.embedders import embed_images, embed_texts, load_embedder
+from model.prior.colour_words import PromptColour, palette_prompt
+from model.prior.embedders import embed_queries, embed_texts, load_embedder
 from model.prior.query import QUERY_META, QUERY_WEIGHTS, InputSlot, slot_for, slot_modalities
 
 
@@ -41,15 +42,18 @@ class QueryModel:
     """Text and images to codes ``(shape [S], color [C])`` and to the nearest training instances.
 
     Joint embeddings are float32 ``[E]``: one slot per embedder (``slots``), a query filling the
-    slots it has. ``shape_book [I, S]`` and ``color_book [I, C]`` are the bundle's per-instance codes.
+    slots it has. ``shape_book [I, S]`` and ``color_book [I, C]`` are the bundle's per-instance codes,
+    ``instance_colours`` the palette colour each instance's caption names (None where it names none).
     """
 
-    def __init__(self, folder: Path, shape_book: np.ndarray, color_book: np.ndarray, *, threads: int | None = None):
+    def __init__(self, folder: Path, shape_book: np.ndarray, color_book: np.ndarray, *, threads: int | None = None,
+                 instance_colours: list[str | None] | None = None):
         self.folder = Path(folder)
         meta = json.loads((self.folder / QUERY_META).read_text(encoding="utf-8"))
         self.slots = [InputSlot.from_json(slot) for slot in meta["inputs"]]
         self.input_dim = sum(slot.dim for slot in self.slots)
         self.shape_book, self.color_book = shape_book, color_book
+        self.instance_colours = list(instance_colours) if instance_colours is not None else [None] * len(shape_book)
         with safe_open(str(self.folder / QUERY_WEIGHTS), framework="pt") as weights:
             scale = weights.get_tensor("code_scale").float().numpy()
         self._shape_scale, self._color_scale = scale[: shape_book.shape[1]], scale[shape_book.shape[1] :]
@@ -91,15 +95,16 @@ class QueryModel:
         return joint
 
     def embed_text(self, text: str) -> np.ndarray:
-        """The joint embedding ``[E]`` of a prompt."""
-        return self._joint("text", embed_texts(self._embedder("text"), [text]))
+        """The joint embedding ``[E]`` of a prompt, its colour words read as palette colours
+        (``model.prior.colour_words``: the text encoder knows few colour names)."""
+        return self._joint("text", embed_texts(self._embedder("text"), [palette_prompt(text).prompt]))
 
     def embed_image(self, rgba) -> np.ndarray:
         """The joint embedding ``[E]`` of a straight-alpha RGBA (or RGB) image ``[H, W, 4]`` in [0, 1]."""
         image = torch.as_tensor(np.asarray(rgba, dtype=np.float32))
         if image.ndim != 3:
             raise ValueError(f"embed one image [H, W, 4] (or [H, W, 3]) at a time, got shape {list(image.shape)}")
-        return self._joint("image", embed_images(self._embedder("image"), image[None]))
+        return self._joint("image", embed_queries(self._embedder("image"), image[None]))
 
     def _check(self, embedding) -> np.ndarray:
         joint = np.asarray(embedding, dtype=np.float32).reshape(-1)
@@ -107,13 +112,23 @@ class QueryModel:
             raise ValueError(f"a joint embedding has {self.input_dim} finite numbers, got {joint.shape[0]} (use embed_text or embed_image)")
         return joint
 
-    def codes(self, embedding, snap: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Codes ``(shape [S], color [C])`` of a joint embedding; with ``snap`` each is the nearest codebook entry."""
+    def codes(self, embedding, snap: bool = True, colour: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Codes ``(shape [S], color [C])`` of a joint embedding; with ``snap`` each is the nearest
+        codebook entry, the colour among the instances wearing palette ``colour`` when any does."""
         shape, color = self._session.run([SHAPE_INPUT, COLOR_INPUT], {EMBEDDING_INPUT: self._check(embedding)[None]})
         shape, color = shape[0], color[0]
         if snap:
-            shape, color = _nearest(shape, self.shape_book, self._shape_scale), _nearest(color, self.color_book, self._color_scale)
+            wearers = [n for n, c in enumerate(self.instance_colours) if colour is not None and c == colour]
+            colours = self.color_book[wearers] if wearers else self.color_book
+            shape, color = _nearest(shape, self.shape_book, self._shape_scale), _nearest(color, colours, self._color_scale)
         return shape, color
+
+    def text_codes(self, text: str, snap: bool = True) -> tuple[np.ndarray, np.ndarray, PromptColour]:
+        """Codes of a prompt and what was read from it (``model.prior.colour_words``): its colour
+        words read as palette colours, and the colour it names constraining the snapped colour code."""
+        read = palette_prompt(text)
+        shape, color = self.codes(self._joint("text", embed_texts(self._embedder("text"), [read.prompt])), snap, read.palette)
+        return shape, color, read
 
     def retrieve(self, embedding, k: int = 5) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` instances whose codes are nearest the codes the query network predicts from the

@@ -49,6 +49,9 @@ def register_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--composed", type=int, default=defaults.composed_per_pair,
                         help="composed captions per (shape, colour none of its instances wears), aimed at that shape with another "
                              f"instance's colour code (default {defaults.composed_per_pair}; 0: own captions only)")
+    parser.add_argument("--vocabulary", type=int, default=defaults.vocabulary_captions,
+                        help="captions naming the colour by a word of the XKCD survey's colour names filed under it, per instance and "
+                             f"per composed pair (default {defaults.vocabulary_captions}; 0: palette and training colour words only)")
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.set_defaults(func=cmd_train)
 
@@ -63,7 +66,7 @@ def cmd_train(args) -> int:
 
     cfg = QueryTrainConfig(query=QueryConfig(head=args.head), image_embedder=args.image_embedder, text_embedder=args.text_embedder, views_per_instance=args.views,
                            steps=args.steps, batch=args.batch, lr=args.lr, text_fraction=args.text_fraction, composed_per_pair=args.composed,
-                           seed=args.seed)
+                           vocabulary_captions=args.vocabulary, seed=args.seed)
     out = Path(args.out) if args.out else Path(args.run) / "query"
     summary = train_query(Path(args.run), Path(args.data), out, cfg, default_device())
     validation = summary["validation"]
@@ -117,6 +120,7 @@ def cmd_text(args) -> int:
     import time
 
     from model.nerf.device import default_device
+    from model.prior.colour_words import palette_prompt
     from model.prior.outputs import write_outputs
     from model.prior.query import QueryPipeline, nearest_instances
 
@@ -129,7 +133,8 @@ def cmd_text(args) -> int:
     embedding = pipeline.embed(text=args.prompt)
     embedded = time.perf_counter()
     raw_shape, raw_color = pipeline.codes(embedding, snap=False)
-    shape, color = (raw_shape, raw_color) if args.raw else pipeline.codes(embedding, snap=True)
+    read = palette_prompt(args.prompt)
+    shape, color = (raw_shape, raw_color) if args.raw else pipeline.codes(embedding, snap=True, colour=read.palette)
     coded = time.perf_counter()
     out = Path(args.out)
     timings = {"load_s": loaded - start, "embedding_ms": 1000 * (embedded - loaded), "query_ms": 1000 * (coded - embedded)}
@@ -139,6 +144,7 @@ def cmd_text(args) -> int:
     nearest = nearest_instances(pipeline.net, raw_shape, raw_color, pipeline.shape_book, pipeline.color_book, k=3)[0].tolist()
     result = {
         "prompt": args.prompt,
+        "read_as": read.prompt,
         "snapped": not args.raw,
         "nearest_instances": [prior.instances[i]["id"] for i in nearest],
         "shape_code": shape[0].tolist(),
@@ -147,6 +153,8 @@ def cmd_text(args) -> int:
         "command": _command(),
     }
     write_outputs(out, params, prior.net.cfg.field, grid, prior.scene, camera, extra=result, turntable_frames=args.frames, mesh_resolution=args.mesh_resolution)
+    if read.name:
+        print(f"read the colour {read.name!r} as {read.palette}: {read.prompt!r}")
     print(f"{args.prompt!r}: nearest training instances {', '.join(result['nearest_instances'])}; "
           f"NeRF, renders, turntable.gif and mesh.glb in {out} (embedding {timings['embedding_ms']:.0f} ms, Delta {timings['query_ms']:.1f} ms, "
           f"hypernetwork {timings['hypernetwork_ms']:.0f} ms, first render {timings['first_render_ms']:.0f} ms)")
@@ -233,6 +241,7 @@ def register_eval_query(eval_sub) -> None:
     txt.add_argument("--grid", help="PNG grid of prompt -> renders (default: beside --json)")
     txt.add_argument("--prompts", type=int, default=40)
     txt.add_argument("--raw", action="store_true", help="Delta's codes as they are (no snapping to the codebook)")
+    txt.add_argument("--no-colour-words", action="store_true", help="embed the prompts as they are (no colour lexicon)")
     txt.add_argument("--seed", type=int, default=0)
     txt.set_defaults(func=cmd_eval_text)
     smp = eval_sub.add_parser("sampling", help="unconditional samples and interpolation paths: distance to training codes, validity proxies")
@@ -287,7 +296,8 @@ def cmd_eval_text(args) -> int:
 
     _positive("prompts", args.prompts)
     grid = _beside(args.json, args.grid, ".png")
-    report = text_to_nerf(_pipeline(args), Path(args.data), prompts=args.prompts, seed=args.seed, snap=not args.raw, grid_png=grid)
+    report = text_to_nerf(_pipeline(args), Path(args.data), prompts=args.prompts, seed=args.seed, snap=not args.raw,
+                          read_colours=not args.no_colour_words, grid_png=grid)
     report["command"] = _command()
     _write_json(args.json, report)
     ceiling = report["colour_measure_on_ground_truth"]

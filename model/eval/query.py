@@ -55,8 +55,9 @@ from model.nerf.rays import Intrinsics
 from model.nerf.renderer import RenderConfig, render_image
 from model.nerf.segment import SegmentationError, object_rgba
 from model.prior.captions import COLOUR_SYNONYMS, attributes, held_out_prompt
+from model.prior.colour_words import palette_prompt
 from model.prior.codes import generated_grid
-from model.prior.embedders import embed_images, embed_texts
+from model.prior.embedders import embed_queries
 from model.prior.embedding_cache import view_embeddings
 from model.prior.io import Prior
 from model.prior.query import QueryPipeline, code_distances, instance_bank, nearest_instances
@@ -226,11 +227,11 @@ def retrieval(pipeline: QueryPipeline, data: Path, *, views_per_instance: int = 
         poses = [sampler.sample(rng, resolution) for _ in range(views_per_instance)]
         angles += [angle_to_training_views(c2w, dataset_views) for c2w, _ in poses]
         views = render_queries(meshes[inst["id"]], poses, resolution)
-        clean.append(embed_images(embedder, views))
+        clean.append(embed_queries(embedder, views))
         truth += [n] * len(views)
         if clutter_queries:
             photos = [over_background(v, clutter(rng, resolution)) for v in views]
-            cluttered.append(embed_images(embedder, torch.from_numpy(np.stack(photos)).float()))
+            cluttered.append(embed_queries(embedder, torch.from_numpy(np.stack(photos)).float()))
             for view, photo in zip(views, photos):
                 truth_mask = view[..., 3].numpy() > 0.5
                 shown = [composite_over(view), torch.from_numpy(photo).float()]
@@ -241,7 +242,7 @@ def retrieval(pipeline: QueryPipeline, data: Path, *, views_per_instance: int = 
                         rejected[prompt] += 1
                         rgba = np.concatenate([photo, np.ones_like(photo[..., :1])], axis=-1)
                     ious[prompt].append(_iou(rgba[..., 3] > 0.5, truth_mask))
-                    segmented[prompt].append(embed_images(embedder, torch.from_numpy(rgba).float()[None]))
+                    segmented[prompt].append(embed_queries(embedder, torch.from_numpy(rgba).float()[None]))
                     shown.append(composite_over(torch.from_numpy(rgba).float()))
                 if len(examples) < 6:
                     examples.append(tuple(shown))
@@ -401,8 +402,11 @@ def prompt_set(entries: list[dict], count: int, seed: int) -> list[dict]:
             for n, (c, k, s) in enumerate(pairs)]
 
 
-def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed: int = 0, snap: bool = True, grid_png: Path | None = None) -> dict:
-    """Generate a NeRF per held-out prompt and score its dominant colour and its type."""
+def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed: int = 0, snap: bool = True, read_colours: bool = True,
+                 grid_png: Path | None = None) -> dict:
+    """Generate a NeRF per held-out prompt and score its dominant colour and its type; with
+    ``read_colours`` the prompt's colour words are read with the colour lexicon first and the
+    colour it names constrains the snapped colour code (``QueryPipeline.text_codes``)."""
     data = Path(data)
     prior = pipeline.prior
     index = {e.id: e.to_json() for e in load_index(data)}
@@ -412,9 +416,8 @@ def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed
     poses = evaluation_poses()[list(COLOUR_POSES)]
     rows, tiles, labels = [], [], []
     for item in tqdm(prompt_set(entries, prompts, seed), desc="text-to-NeRF", unit="prompt"):
-        embedding = pipeline.embed(text=item["prompt"])
-        raw_shape, raw_color = pipeline.codes(embedding, snap=False)
-        shape, color = pipeline.codes(embedding, snap=True) if snap else (raw_shape, raw_color)
+        raw_shape, raw_color, read = pipeline.text_codes(item["prompt"], snap=False, read_colours=read_colours)
+        shape, color = pipeline.text_codes(item["prompt"], read_colours=read_colours)[:2] if snap else (raw_shape, raw_color)
         images, opacity = render_nerf(prior, shape, color, poses, camera)
         colour, shares = dominant_colour_of(images, opacity)
         nearest = int(nearest_instances(pipeline.net, raw_shape, raw_color, pipeline.shape_book, pipeline.color_book)[0, 0])
@@ -422,7 +425,8 @@ def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed
         kind = kinds[int(shape_d.argmin())]
         rows.append({**item, "measured_colour": colour, "colour_shares": shares, "measured_type": kind,
                      "colour_ok": colour == item["colour"], "colour_present": shares.get(item["colour"], 0.0) >= COLOUR_PRESENT_SHARE,
-                     "type_ok": kind == item["type"], "nearest_instance": prior.instances[nearest]["id"]})
+                     "type_ok": kind == item["type"], "nearest_instance": prior.instances[nearest]["id"],
+                     "read_as": read.prompt, "colour_word": read.name, "colour_word_as": read.palette})
         tiles.append((images[0], images[1]))
         labels.append(f"{item['prompt']}  ->  {colour}, {kind}")
     ceiling = colour_measure_agreement(data, entries)
@@ -448,7 +452,10 @@ def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed
         "pairs_not_in_training": subset(False),
         "palette_colour_words": subset(False, "colour_synonym"),
         "colour_synonyms": subset(True, "colour_synonym"),
+        "synonyms_the_lexicon_knows": {"prompts": sum(bool(r["colour_word"]) for r in rows if r["colour_synonym"]),
+                                       "read_as_the_prompt_colour": sum(r["colour_word_as"] == r["colour"] for r in rows if r["colour_synonym"])},
         "snapped": snap,
+        "colour_words_read": read_colours,
         "colour_measure_on_ground_truth": ceiling,
         "timing_ms": timing,
         "colour_present_metric": f"the prompt's colour covers at least {COLOUR_PRESENT_SHARE:.0%} of the foreground pixels",
@@ -473,7 +480,7 @@ def query_timings(pipeline: QueryPipeline, prompt: str, image: torch.Tensor, cam
     for _ in range(repeats + 1):
         embedding = timed("text_embedding", lambda: pipeline.embed(text=prompt))
         timed("image_embedding", lambda: pipeline.embed(image=image))
-        shape, color = timed("query_network", lambda: pipeline.codes(embedding, snap=True))
+        shape, color = timed("query_network", lambda: pipeline.codes(embedding, snap=True, colour=palette_prompt(prompt).palette))
         with torch.no_grad():
             params = timed("hypernetwork", lambda: prior.net.params_from_codes(shape, color))
         grid = timed("occupancy_grid", lambda: generated_grid(params, prior.net.cfg.field, prior.scene))

@@ -53,6 +53,9 @@ class TTOConfig:
     init_rays: int = 512
     init_samples_per_ray: int = 32
     """The first loss of every instance is cheap: few rays, coarse samples."""
+    init_shapes: int = 4
+    """The nearest-instance start scores one instance per shape first (by silhouette when the
+    inputs have alpha), then every colour variant of this many best shapes; 0 scores every instance."""
     finetune_steps: int = 0
     finetune_lr: float = 1e-3
     finetune_pull: float = 1.0
@@ -79,8 +82,8 @@ class TTOConfig:
     def __post_init__(self):
         if self.steps < 1 or self.rays_per_step < 1 or self.init_rays < 1:
             raise ValueError("steps, rays_per_step and init_rays must be at least 1")
-        if self.finetune_steps < 0 or self.patience < 0:
-            raise ValueError("finetune_steps and patience must not be negative")
+        if self.finetune_steps < 0 or self.patience < 0 or self.init_shapes < 0:
+            raise ValueError("finetune_steps, patience and init_shapes must not be negative")
         if not (self.lr > 0 and self.finetune_lr > 0) or not all(math.isfinite(v) for v in (self.lr, self.finetune_lr, self.code_prior_weight, self.finetune_pull)):
             raise ValueError("learning rates must be positive and every weight finite")
         if self.init not in ("nearest", "mean"):
@@ -200,19 +203,41 @@ def _render_loss(params: FieldParams, field_cfg: Field, batch: RayBatch, cfg: Re
 
 
 @torch.no_grad()
-def instance_losses(net: HyperNetwork, field_cfg: Field, scene: SceneBox, batch: RayBatch, cfg: RenderConfig) -> torch.Tensor:
-    """Photometric loss ``[I]`` of every instance's NeRF on ``batch`` (composited over white,
-    no jitter): how close each training instance's render at the input poses is."""
+def instance_losses(net: HyperNetwork, field_cfg: Field, scene: SceneBox, batch: RayBatch, cfg: RenderConfig,
+                    instances: Sequence[int] | None = None, silhouette: bool = False) -> torch.Tensor:
+    """Loss ``[I]`` of each of ``instances`` (default: all) on ``batch``, rendered without jitter:
+    the squared error of the render over white to the image over white, or with ``silhouette``
+    of the render's opacity to the image's alpha (what the shape alone decides)."""
     device = batch.origins.device
     alpha = batch.rgba[:, 3:]
     white = torch.ones(3, device=device)
     target = batch.rgba[:, :3] * alpha + white * (1 - alpha)
+    shapes, colors = codebook(net)
     losses = []
-    for shape, color in zip(*codebook(net)):
-        params = net.params_from_codes(shape[None], color[None])
+    for n in range(len(shapes)) if instances is None else instances:
+        params = net.params_from_codes(shapes[n : n + 1], colors[n : n + 1])
         out = render_rays(params, field_cfg, batch.origins, batch.directions, cfg, scene=scene, background=white)
-        losses.append(torch.mean((out["rgb"] - target) ** 2))
+        losses.append(torch.mean((out["opacity"].reshape(-1, 1) - alpha) ** 2) if silhouette else torch.mean((out["rgb"] - target) ** 2))
     return torch.stack(losses)
+
+
+def nearest_instance(net: HyperNetwork, field_cfg: Field, scene: SceneBox, batch: RayBatch, cfg: RenderConfig,
+                     shortlist: int, silhouette: bool) -> int:
+    """The codebook instance whose render is closest to ``batch``. With ``shortlist`` > 0, in two
+    rounds: the first instance of every shape scored (by ``silhouette`` when the image has alpha,
+    so a shape is not ruled out by the colour of the variant that stands for it), then every
+    instance of the ``shortlist`` best shapes by colour; a fraction of the hypernetwork
+    evaluations of scoring all instances when the codebook holds several colours per shape."""
+    shape_of = net.shape_index.tolist()
+    if not shortlist or shortlist >= max(shape_of) + 1:
+        return int(torch.argmin(instance_losses(net, field_cfg, scene, batch, cfg)))
+    first: dict[int, int] = {}
+    for n, s in enumerate(shape_of):
+        first.setdefault(s, n)
+    scores = instance_losses(net, field_cfg, scene, batch, cfg, list(first.values()), silhouette)
+    kept = {list(first)[int(i)] for i in torch.argsort(scores)[:shortlist]}
+    candidates = [n for n, s in enumerate(shape_of) if s in kept]
+    return candidates[int(torch.argmin(instance_losses(net, field_cfg, scene, batch, cfg, candidates)))]
 
 
 def with_mirrored_views(images: torch.Tensor, c2w: torch.Tensor, cameras: Sequence[Intrinsics], scene: SceneBox):
@@ -315,8 +340,7 @@ def invert(
             raise TTOError(f"the starting codes must have {shapes.shape[1]} + {colors.shape[1]} values")
         started = "given"
     elif cfg.init == "nearest":
-        losses = instance_losses(net, field_cfg, scene, pixels.sample(cfg.init_rays, c2w, generator), coarse)
-        best = int(torch.argmin(losses))
+        best = nearest_instance(net, field_cfg, scene, pixels.sample(cfg.init_rays, c2w, generator), coarse, cfg.init_shapes, has_alpha)
         shape0, color0 = shapes[best], colors[best]
         started = f"nearest:{best}"
     else:

@@ -19,9 +19,15 @@ optionally colour words never seen in training (:data:`COLOUR_SYNONYMS`).
 
 from __future__ import annotations
 
+import difflib
+import functools
 import random
 import re
 from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.colors import XKCD_COLORS, to_rgb
+from skimage.color import rgb2lab
 
 from model.data.colours import PALETTE, article
 
@@ -41,7 +47,7 @@ TRAIN_TEMPLATES = (
     "{a} {colour} {noun}",
     "{colour} {noun}",
     "{a_noun} {noun} in {colour}",
-    "a {colour} coloured {noun}",
+    "{a} {colour} coloured {noun}",
     "the {noun} is {colour}",
     "{a_noun} {noun}",
     "{a_noun} {noun}, {colour}",
@@ -105,6 +111,44 @@ TYPE_WORDS = {
 }
 
 
+# a survey name whose palette word disagrees with its measured colour ("cloudy blue" is nearest
+# white) is dropped, and one without a palette word is kept only when its nearest palette colour is
+# clearly nearer than the second (distance ratio below this)
+VOCABULARY_MARGIN = 0.75
+# survey names are crowd-sourced; these keep the training text presentable
+_CRUDE = ("shit", "poo", "puke", "vomit", "booger", "barf", "snot", "pee", "ugly", "nasty", "sick", "baby")
+
+
+def _near_held_out(word: str, held_out: set[str]) -> bool:
+    tokens = [t for t in re.findall(r"[a-z]+", word) if t not in PALETTE]  # "grey" is trained on, "gray" held out
+    return any(h in word or difflib.SequenceMatcher(None, t, h).ratio() >= 0.75 for h in held_out for t in tokens)
+
+
+@functools.cache
+def colour_vocabulary() -> dict[str, tuple[str, ...]]:
+    """Per palette colour, the XKCD survey's colour names filed under it (nearest in CIELAB, see
+    :data:`VOCABULARY_MARGIN`), without any name that contains or nearly spells a held-out
+    synonym (:data:`COLOUR_SYNONYMS`): no evaluation colour word is ever trained on."""
+    from model.data.colours import colour_names
+
+    held_out = {w for words in COLOUR_SYNONYMS.values() for w in words}
+    names = [key.removeprefix("xkcd:") for key in XKCD_COLORS]
+    rgb = np.array([to_rgb(value) for value in XKCD_COLORS.values()])
+    palette = list(PALETTE)
+    lab = rgb2lab(rgb[None])[0]
+    palette_lab = rgb2lab(np.array([PALETTE[p] for p in palette])[None])[0]
+    distance = np.sort(np.linalg.norm(lab[:, None] - palette_lab[None], axis=-1), axis=1)
+    vocabulary: dict[str, list[str]] = {p: [] for p in palette}
+    for name, nearest, (first, second) in zip(names, colour_names(rgb), distance[:, :2]):
+        if _near_held_out(name, held_out) or any(c in name for c in _CRUDE):
+            continue
+        named = next((w for w in reversed(re.findall(r"[a-z]+", name)) if w in PALETTE), None)
+        if named is not None and named != nearest or named is None and first > VOCABULARY_MARGIN * second:
+            continue
+        vocabulary[nearest].append(name)
+    return {p: tuple(sorted(words)) for p, words in vocabulary.items()}
+
+
 @dataclass(frozen=True)
 class Attributes:
     """What captions say about an instance: main colour (a palette name or None), noun and type."""
@@ -165,6 +209,18 @@ def composed_captions(attrs: Attributes, colour: str) -> list[str]:
     if colour not in PALETTE:
         raise ValueError(f"{colour!r} is not a palette colour")
     return list(dict.fromkeys(_captions(colour, list(dict.fromkeys((attrs.kind, *TRAIN_TYPE_WORDS.get(attrs.kind, ())))))))
+
+
+def vocabulary_captions(nouns: list[str], colour: str, count: int, rng: random.Random) -> list[str]:
+    """``count`` captions of one of ``nouns`` in palette ``colour``, each with a random training
+    template and a random word of the colour's vocabulary (:func:`colour_vocabulary`)."""
+    words = colour_vocabulary()[colour]
+    templates = [t for t in TRAIN_TEMPLATES if "{colour}" in t]
+    out = []
+    for _ in range(count if words else 0):
+        word, noun = rng.choice(words), rng.choice(nouns)
+        out.append(rng.choice(templates).format(a=article(word), colour=word, noun=noun, a_noun=article(noun)))
+    return out
 
 
 def held_out_prompt(colour: str, kind: str, rng: random.Random, synonym: bool = False) -> str:

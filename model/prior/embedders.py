@@ -392,3 +392,13 @@ def embed_texts(embedder, texts: list[str]) -> torch.Tensor:
 def embed_images(embedder, rgba: torch.Tensor) -> torch.Tensor:
     """Image embeddings ``[N, E]`` of RGBA images ``[N, H, W, 4]`` from an image embedder or CLIP."""
     return embedder.embed_image(rgba) if hasattr(embedder, "embed_image") else embedder.embed(rgba)
+
+
+def embed_queries(embedder, rgba: torch.Tensor) -> torch.Tensor:
+    """Embeddings ``[N, E]`` of query images ``[N, H, W, 4]``: the mean direction of the embeddings
+    of each image and of its left-right mirror. The category's objects are close to left-right
+    symmetric, so the mirror is another view of the same object, and averaging the two cancels part
+    of what depends on the side seen: retrieval top-1 on new poses rises by 0.5-0.7 points with
+    each query network measured (BENCHMARKS.md). Training views are embedded as they are."""
+    both = embed_images(embedder, torch.cat([rgba, rgba.flip(-2)]))
+    return F.normalize(both[: len(rgba)] + both[len(rgba) :], dim=-1)

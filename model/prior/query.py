@@ -24,6 +24,7 @@ instance next, and the per-instance mean last: the bank is the compact fallback,
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +34,8 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from model.nerf import config
+from model.prior.captions import caption_colour
+from model.prior.colour_words import PromptColour, palette_prompt
 from model.prior.embedders import Embedder
 
 QUERY_WEIGHTS = "query.safetensors"
@@ -259,13 +262,25 @@ def nearest_instances(net: QueryNetwork, shape: torch.Tensor, color: torch.Tenso
     return (shape_d + color_d).topk(min(k, shape_d.shape[1]), dim=1, largest=False).indices
 
 
-def snap_codes(net: QueryNetwork, shape: torch.Tensor, color: torch.Tensor, shape_book: torch.Tensor, color_book: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def snap_codes(net: QueryNetwork, shape: torch.Tensor, color: torch.Tensor, shape_book: torch.Tensor, color_book: torch.Tensor,
+               colour_rows: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Each predicted code replaced by its nearest codebook entry, shape and colour separately
     (the result may pair one instance's shape with another's colour). A regression from an
     ambiguous query lands between codes, and a point between codes decodes to a faded blend of
-    chairs; a codebook entry decodes to a sharp one."""
+    chairs; a codebook entry decodes to a sharp one. ``colour_rows`` (``[I]`` bool), when it
+    selects any, restricts the colour to those instances' codes (the wearers of a colour a
+    prompt names)."""
     shape_d, color_d = code_distances(net, shape, color, shape_book, color_book)
+    if colour_rows is not None and bool(colour_rows.any()):
+        color_d = color_d.masked_fill(~colour_rows.to(color_d.device)[None], math.inf)
     return shape_book[shape_d.argmin(dim=1)].to(shape), color_book[color_d.argmin(dim=1)].to(color)
+
+
+def colour_rows(instances: list[dict], colour: str | None) -> torch.Tensor | None:
+    """``[I]`` bool: the instances whose caption names palette ``colour`` (None for no colour)."""
+    if colour is None:
+        return None
+    return torch.tensor([caption_colour(str(inst.get("caption", ""))) == colour for inst in instances])
 
 
 def instance_bank(view_embeddings: torch.Tensor) -> torch.Tensor:
@@ -315,15 +330,16 @@ class QueryPipeline:
 
         return cls(load_prior(run, device), load_query(query, device), device)
 
-    def embed(self, text: str | None = None, image: torch.Tensor | None = None) -> torch.Tensor:
-        """The joint embedding ``[1, E]`` of a prompt and/or an RGBA image ``[H, W, 4]``."""
-        from model.prior.embedders import embed_images, embed_texts
+    def embed(self, text: str | None = None, image: torch.Tensor | None = None, read_colours: bool = True) -> torch.Tensor:
+        """The joint embedding ``[1, E]`` of a prompt (with ``read_colours``, its colour words read
+        as palette colours, ``model.prior.colour_words``) and/or an RGBA image ``[H, W, 4]``."""
+        from model.prior.embedders import embed_queries, embed_texts
 
         parts = {}
         if text is not None:
-            parts["text"] = embed_texts(self._embedder("text"), [text])
+            parts["text"] = embed_texts(self._embedder("text"), [palette_prompt(text).prompt if read_colours else text])
         if image is not None:
-            parts["image"] = embed_images(self._embedder("image"), image[None] if image.ndim == 3 else image)
+            parts["image"] = embed_queries(self._embedder("image"), image[None] if image.ndim == 3 else image)
         return self.net.joint(**parts)
 
     def _embedder(self, modality: str):
@@ -332,9 +348,17 @@ class QueryPipeline:
         return self.embedders[modality]
 
     @torch.no_grad()
-    def codes(self, embedding: torch.Tensor, snap: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
-        """Codes ``([B, S], [B, C])`` of joint embeddings ``[B, E]``."""
+    def codes(self, embedding: torch.Tensor, snap: bool = True, colour: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Codes ``([B, S], [B, C])`` of joint embeddings ``[B, E]``; with ``snap``, a palette
+        ``colour`` restricts the colour code to the instances wearing it."""
         shape, color = self.net(embedding.to(self.device))
         if snap:
-            shape, color = snap_codes(self.net, shape, color, self.shape_book, self.color_book)
+            shape, color = snap_codes(self.net, shape, color, self.shape_book, self.color_book, colour_rows(self.prior.instances, colour))
         return shape, color
+
+    def text_codes(self, prompt: str, snap: bool = True, read_colours: bool = True) -> tuple[torch.Tensor, torch.Tensor, PromptColour]:
+        """Codes ``([1, S], [1, C])`` of a prompt and what was read from it; with ``read_colours``
+        its colour words are read as palette colours and the colour it names constrains the snap."""
+        read = palette_prompt(prompt) if read_colours else PromptColour(prompt)
+        shape, color = self.codes(self.embed(text=prompt, read_colours=read_colours), snap, read.palette)
+        return shape, color, read

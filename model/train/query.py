@@ -37,7 +37,7 @@ from tqdm import tqdm
 from model.data.dataset import load_index
 from model.nerf import config
 from model.data.colours import PALETTE
-from model.prior.captions import attributes, composed_captions, training_captions
+from model.prior.captions import TRAIN_TYPE_WORDS, attributes, composed_captions, training_captions, vocabulary_captions
 from model.prior.embedders import embed_texts, load_embedder
 from model.prior.embedding_cache import view_embeddings
 from model.prior.io import load_prior
@@ -64,14 +64,17 @@ class QueryTrainConfig:
     text_fraction: float = 0.3
     composed_per_pair: int = 8
     """Composed captions per (shape, colour it is never rendered in); 0 trains on own captions only."""
+    vocabulary_captions: int = 16
+    """Captions naming the colour by a word of its vocabulary, per instance and per composed pair."""
     seed: int = 0
 
     def __post_init__(self):
         for name in ("views_per_instance", "steps", "batch"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}")
-        if self.composed_per_pair < 0:
-            raise ValueError(f"composed_per_pair must be 0 or more, got {self.composed_per_pair}")
+        for name in ("composed_per_pair", "vocabulary_captions"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name.replace('_', '-')} must be 0 or more, got {getattr(self, name)}")
         if not 0.0 <= self.text_fraction <= 1.0:
             raise ValueError(f"text_fraction must be in [0, 1], got {self.text_fraction}")
 
@@ -93,18 +96,27 @@ def image_embeddings(embedder, data: Path, ids: list[str], split: str, count: in
     return torch.stack(rows)
 
 
-def caption_targets(entries: list[dict], shape_of: list[int], composed_per_pair: int, seed: int = 0) -> tuple[list[str], list[tuple[int, int]]]:
+def caption_targets(entries: list[dict], shape_of: list[int], composed_per_pair: int, seed: int = 0,
+                    vocabulary: int = 0) -> tuple[list[str], list[tuple[int, int]]]:
     """Every training text and its target ``(shape instance, colour instance)``: each instance's
-    own captions (itself twice), then ``composed_per_pair`` composed captions for each shape and
-    each palette colour none of its instances wears, aimed at the shape's first instance and an
-    instance wearing that colour (drawn with a seeded generator)."""
+    own captions (itself twice) and ``vocabulary`` captions naming its colour by vocabulary words,
+    then for each shape and each palette colour none of its instances wears ``composed_per_pair``
+    composed captions and ``vocabulary`` vocabulary captions, aimed at the shape's first instance
+    and an instance wearing that colour (all drawn with a seeded generator)."""
+    rng = random.Random(seed)
+    words = random.Random(f"{seed}-vocabulary")  # its own stream: the other captions do not change with ``vocabulary``
     texts, owners = [], []
+
+    def add(new: list[str], owner: tuple[int, int]):
+        texts.extend(new)
+        owners.extend([owner] * len(new))
+
     for n, entry in enumerate(entries):
-        for text in training_captions(str(entry.get("caption", "")), attributes(entry)):
-            texts.append(text)
-            owners.append((n, n))
-    if composed_per_pair:
-        rng = random.Random(seed)
+        attrs = attributes(entry)
+        add(training_captions(str(entry.get("caption", "")), attrs), (n, n))
+        if vocabulary and attrs.colour:
+            add(vocabulary_captions(_type_nouns(attrs, attrs.noun), attrs.colour, vocabulary, words), (n, n))
+    if composed_per_pair or vocabulary:
         colours = [attributes(entry).colour for entry in entries]
         wearers = {c: [n for n, colour in enumerate(colours) if colour == c] for c in PALETTE}
         first = {}
@@ -118,15 +130,20 @@ def caption_targets(entries: list[dict], shape_of: list[int], composed_per_pair:
                     continue
                 donor = rng.choice(wearers[colour])
                 captions = composed_captions(attrs, colour)
-                for text in rng.sample(captions, min(composed_per_pair, len(captions))):
-                    texts.append(text)
-                    owners.append((n, donor))
+                add(rng.sample(captions, min(composed_per_pair, len(captions))), (n, donor))
+                # type words only, as composed captions: the catalogue noun may name a colour
+                add(vocabulary_captions(_type_nouns(attrs), colour, vocabulary, words), (n, donor))
     return texts, owners
 
 
-def caption_embeddings(embedder, entries: list[dict], shape_of: list[int], composed_per_pair: int = 0, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+def _type_nouns(attrs, *extra: str) -> list[str]:
+    return list(dict.fromkeys((*extra, attrs.kind, *TRAIN_TYPE_WORDS.get(attrs.kind, ()))))
+
+
+def caption_embeddings(embedder, entries: list[dict], shape_of: list[int], composed_per_pair: int = 0, seed: int = 0,
+                       vocabulary: int = 0) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
     """Embeddings ``[T, E]`` of every training text, its target instances ``[T, 2]`` (shape, colour), and the texts."""
-    texts, owners = caption_targets(entries, shape_of, composed_per_pair, seed)
+    texts, owners = caption_targets(entries, shape_of, composed_per_pair, seed, vocabulary)
     return embed_texts(embedder, texts), torch.tensor(owners), texts
 
 
@@ -147,7 +164,7 @@ def train_query(run: Path, data: Path, out: Path, cfg: QueryTrainConfig, device=
     text_embedder = load_embedder(cfg.text_embedder) if cfg.text_embedder else None
     embedders = [image_embedder] + ([text_embedder] if text_embedder is not None and text_embedder is not image_embedder else [])
     views = image_embeddings(image_embedder, data, ids, "train", cfg.views_per_instance, progress)
-    texts = caption_embeddings(text_embedder, entries, shape_of.tolist(), cfg.composed_per_pair, cfg.seed) if text_embedder is not None else None
+    texts = caption_embeddings(text_embedder, entries, shape_of.tolist(), cfg.composed_per_pair, cfg.seed, cfg.vocabulary_captions) if text_embedder is not None else None
     log.info("training the query network on %d instances: %d views each%s", len(ids), views.shape[1],
              f", {len(texts[2])} captions" if texts else "")
 

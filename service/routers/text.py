@@ -8,7 +8,7 @@ from model.prior.embedders import EmbedderError
 from service.routers.deps import ResidentDep, invalid
 from service.routers.nerfs import create_from_codes
 from service.schemas.common import PROBLEM_RESPONSES
-from service.schemas.text import TextNerf, TextToNerf
+from service.schemas.text import ColourWord, TextNerf, TextToNerf
 
 router = APIRouter(prefix="/v1", tags=["text"], responses={code: PROBLEM_RESPONSES[code] for code in (422, 429, 503)} | {
     501: {**PROBLEM_RESPONSES[422], "description": "the bundle has no query network"}})
@@ -25,8 +25,9 @@ async def text_to_nerf(body: TextToNerf, response: Response, resident: ResidentD
     if len(text) > limit:
         raise invalid("text", "body", f"at most {limit} characters (HYPNERF_LIMITS__MAX_TEXT_CHARS), got {len(text)}")
     try:
-        shape, color = await resident.compute("text", lambda: query.codes(query.embed_text(text)))
+        shape, color, read = await resident.compute("text", lambda: query.text_codes(text))
     except EmbedderError as error:
         raise invalid("text", "body", str(error)) from None
     nerf = await create_from_codes(resident, shape, color, {"text": text}, response)
-    return TextNerf(nerf=nerf, render_url=nerf.links.render)
+    return TextNerf(nerf=nerf, render_url=nerf.links.render, read_as=read.prompt,
+                    colour_word=ColourWord(name=read.name, palette=read.palette) if read.name else None)

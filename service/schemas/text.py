@@ -12,6 +12,14 @@ class TextToNerf(BaseModel):
                       examples=["a brown chair"])
 
 
+class ColourWord(BaseModel):
+    name: str = Field(description="the colour name found in the prompt", examples=["crimson"])
+    palette: str = Field(description="the palette colour it was read as", examples=["red"])
+
+
 class TextNerf(BaseModel):
     nerf: Nerf
     render_url: str = Field(description="a first view of it (GET returns a PNG)")
+    read_as: str = Field(description="the prompt as the query network read it: a colour name that is not a palette colour "
+                                     "is replaced by the palette colour nearest it", examples=["a red high chair"])
+    colour_word: ColourWord | None = Field(default=None, description="the colour name that was replaced, if any")

@@ -17,12 +17,13 @@ from hypnerf_client._version import __version__
 from hypnerf_client.errors import (APIError, AuthenticationError, BadRequestError, ConflictError, ConnectionError, HypnerfError,
                                    JobCanceledError, JobError, JobFailedError, JobTimeoutError, NotFoundError, NotImplementedByServerError,
                                    PayloadTooLargeError, RateLimitError, ServerError, TimeoutError, UnsupportedMediaError, ValidationError)
-from hypnerf_client.types import (Codes, Instance, InstancePage, Interpolation, InversionOptions, Job, JobEvent, JobProgress, JobResult,
-                                  MatrixPose, Mix, ModelInfo, Nerf, OrbitPose, Retrieval, TextNerf)
+from hypnerf_client.types import (Codes, ColourWord, Instance, InstancePage, Interpolation, InversionOptions, Job, JobEvent, JobProgress,
+                                  JobResult, MatrixPose, Mix, ModelInfo, Nerf, OrbitPose, Retrieval, TextNerf)
 
 __all__ = [
     "APIError", "AsyncClient", "AsyncInstances", "AsyncJobs", "AsyncNerfs", "AuthenticationError", "BadRequestError", "Client", "Codes",
-    "ConflictError", "ConnectionError", "HypnerfError", "Instance", "InstancePage", "Instances", "Interpolation", "InversionOptions",
+    "ColourWord", "ConflictError", "ConnectionError", "HypnerfError", "Instance", "InstancePage", "Instances", "Interpolation",
+    "InversionOptions",
     "Job", "JobCanceledError", "JobError", "JobEvent", "JobFailedError", "JobProgress", "JobResult", "JobTimeoutError", "Jobs",
     "MatrixPose", "MeshOptions", "Mix", "ModelInfo", "Nerf", "Nerfs", "NotFoundError", "NotImplementedByServerError", "OrbitPose",
     "PayloadTooLargeError", "RateLimitError", "RenderOptions", "Retrieval", "ServerError", "TextNerf", "TimeoutError",

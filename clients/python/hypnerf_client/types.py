@@ -204,9 +204,16 @@ class Nerf(Result):
     links: NerfLinks
 
 
+class ColourWord(Result):
+    name: str = Field(description="the colour name found in the prompt")
+    palette: str = Field(description="the palette colour it was read as")
+
+
 class TextNerf(Result):
     nerf: Nerf
     render_url: str
+    read_as: str = Field(description="the prompt as the query network read it")
+    colour_word: ColourWord | None = None
 
 
 class Match(Result):
