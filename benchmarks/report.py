@@ -346,7 +346,10 @@ def tto_speed_section(data: dict) -> list[str]:
     verdict = "met" if reach is not None and reach <= data["target_s"] else "missed"
     return ["## TTO: speed against error", "",
             f"Held-out foreground PSNR ({data['evaluation_views']} evaluation views) of the codes every few steps against wall time, "
-            f"mean over {data['objects']} unseen chairs, {data['rays_per_step']} rays a step, {data['ms_per_step']:.0f} ms a step on 2 cores.", "",
+            f"mean over {data['objects']} unseen chairs, {data['rays_per_step']} rays a step, {data['ms_per_step']:.0f} ms a step on 2 cores"
+            + (f" ({data['threads']} threads, load average {data['load_average_before']:.1f} before the run)" if "threads" in data else "") + ". "
+            + (f"Step 0 comes after the start is chosen ({data['start']['init']}: every shape scored by its silhouette, then the colour "
+               f"variants of the best {data['start']['init_shapes']}), {data['start_s']:.1f} s in." if "start" in data else ""), "",
             *_table(["step", "wall s", "PSNR fg (dB)"], [[str(p["step"]), f"{p['elapsed_s']:.1f}", f"{p['psnr_fg']:.2f}"] for p in pick]), "",
             f"Gain {data['gain_db']:+.2f} dB; 90% of it after {reach if reach is None else round(reach, 1)} s (target {data['target_s']:.0f} s: {verdict}). "
             "Plot: `benchmarks/results/tto_speed.png`." + (f" Timing: {data['timing_note']}." if data.get("timing_note") else ""), ""]
@@ -367,9 +370,11 @@ def _test_cells(row: dict | None) -> list[str]:
 
 
 def query_variants_section(data: dict) -> list[str]:
-    rows = [[name, f"{100 * r['top1']:.1f}", f"{100 * r['shape_top1']:.1f}", f"{100 * r['cluttered_grabcut_box_top1']:.1f}",
-             f"{100 * r['colour_accuracy']:.1f}", f"{100 * r['type_accuracy']:.1f}", f"{100 * r['colour_and_type']:.1f}",
-             f"{100 * r['colour_palette_words']:.1f} / {100 * r['colour_synonyms']:.1f}", f"{100 * r['colour_and_type_palette_words']:.1f}"]
+    def pct(r: dict, key: str) -> str:
+        return f"{100 * r[key]:.1f}" if r.get(key) is not None else "not measured"
+
+    rows = [[name, pct(r, "top1"), pct(r, "shape_top1"), pct(r, "cluttered_grabcut_box_top1"), pct(r, "colour_accuracy"), pct(r, "type_accuracy"),
+             pct(r, "colour_and_type"), f"{pct(r, 'colour_palette_words')} / {pct(r, 'colour_synonyms')}", pct(r, "colour_and_type_palette_words")]
             for name, r in data["rows"].items()]
     return ["## Query network variants", "",
             f"The same {data['queries']} retrieval queries (new poses) and {data['prompts']} held-out prompts for each variant; "

@@ -311,5 +311,13 @@ def test_query_embeds_into_its_slots_and_refuses_another_embedder_version(full_b
     np.testing.assert_array_equal(joint, np.r_[np.zeros(IMAGE_DIM), np.arange(1, TEXT_DIM + 1)].astype(np.float32))
     shape, color = query.codes(joint)
     assert shape.shape == (16,) and color.shape == (16,) and np.isfinite(shape).all()
+    # the colour a prompt names restricts the snapped colour code to the instances wearing it
+    bundle = load_bundle(full_bundle)
+    for colour in {c for c in query.instance_colours if c}:
+        wearers = [n for n, c in enumerate(query.instance_colours) if c == colour]
+        _, worn = query.codes(joint, colour=colour)
+        assert any(np.array_equal(worn, bundle.color_codes[n]) for n in wearers)
+        assert query.text_codes(f"a {colour} chair")[2].palette == colour
+    assert len({c for c in query.instance_colours if c}) >= 2
     with pytest.raises(BundleError, match="efficientnet-lite0 embedder is version image-v2.*trained on version image-v1"):
         query.embed_image(np.ones((8, 8, 4), np.float32))

@@ -247,6 +247,18 @@ def test_snapping_and_nearest_instances_use_the_codebook():
     snapped_shape, snapped_color = snap_codes(net, shape, color, shapes, colors)
     assert torch.equal(snapped_shape, shapes[[4]]) and torch.equal(snapped_color, colors[[1]])
     assert nearest_instances(net, shapes[[2]], colors[[2]], shapes, colors, k=3)[0, 0] == 2
+    # a colour the prompt names restricts the colour to its wearers; the shape is untouched
+    from model.prior.query import code_distances, colour_rows
+
+    instances = [{"caption": f"a {c} chair"} for c in ("red", "blue", "red", "green", "blue", "red")]
+    wearers = colour_rows(instances, "blue")
+    assert wearers.tolist() == [False, True, False, False, True, False] and colour_rows(instances, None) is None
+    _, blue = snap_codes(net, shape, colors[[0]], shapes, colors, wearers)
+    distances = code_distances(net, shape, colors[[0]], shapes, colors)[1][0]
+    assert torch.equal(blue, colors[[1 if distances[1] < distances[4] else 4]])
+    assert torch.equal(snap_codes(net, shape, colors[[0]], shapes, colors, wearers)[0], shapes[[4]])
+    # no instance wears it: the whole codebook
+    assert torch.equal(snap_codes(net, shape, colors[[0]], shapes, colors, colour_rows(instances, "pink"))[1], colors[[0]])
 
 
 # ---------------------------------------------------------------------------------------------

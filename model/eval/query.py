@@ -268,7 +268,7 @@ def retrieval(pipeline: QueryPipeline, data: Path, *, views_per_instance: int = 
         "queries": len(truth),
         "instances": len(instances),
         "shapes": int(shape_of.max()) + 1,
-        "method": "Delta's codes of the query's image embedding -> nearest codebook instance (standardised code distance)",
+        "method": "Delta's codes of the query's image embedding (mean direction with its left-right mirror's) -> nearest codebook instance (standardised code distance)",
         "conditions": results,
         "segmentation": {p: {"mean_iou": statistics.fmean(ious[p]), "rejected": rejected[p]} for p in ious} if ious["box"] else None,
         "box_prompt": f"the object's bounding box grown by {BOX_MARGIN:.0%} of its size per side, as a user would draw it",
