@@ -211,6 +211,33 @@ def test_renders_are_cached_and_resume_continues_exactly(trained, chairs, denois
         train_denoiser(trained[0], chairs, cached, replace(tiny_training(40), pairs=replace(TINY_PAIRS, clean_views=3)), progress=False)
 
 
+def test_tto_pairs_render_unseen_validation_objects_against_their_ground_truth(trained, chairs, denoiser_run, tmp_path, monkeypatch):
+    from model.data.dataset import load_index
+
+    out, _ = denoiser_run
+    (tmp_path / "pairs").mkdir()
+    for path in (out / "pairs").iterdir():
+        (tmp_path / "pairs" / path.name).write_bytes(path.read_bytes())
+    base = cached_pairs(trained[0], chairs, tmp_path, TINY_PAIRS, progress=False)
+    with_tto = replace(TINY_PAIRS, tto_objects=1, tto_views=3)
+    pairs = cached_pairs(trained[0], chairs, tmp_path, with_tto, progress=False)  # the other renders stay valid
+    assert len(pairs["inputs"]) == len(base["inputs"]) + 3 and torch.equal(pairs["inputs"][: len(base["inputs"])], base["inputs"])
+    val = [e.id for e in load_index(chairs) if e.split == "val"]
+    assert (tmp_path / "pairs" / f"tto-{val[0]}.safetensors").is_file()
+    truth = load_views(chairs / val[0], "train")
+    expected = rgba_channels(truth.images[denoiser_training.spread(3, len(truth.files))]).permute(0, 2, 3, 1)
+    got = as_channels(pairs["targets"][-3:]).permute(0, 2, 3, 1)
+    assert (got - expected).abs().max() <= 1 / 255 + 1e-6  # the ground truth of the object's own views
+    rendered = as_channels(pairs["inputs"][-3:])
+    assert torch.isfinite(rendered).all() and float(rendered[:, 3].mean()) > 0.01  # TTO's NeRF shows an object
+    monkeypatch.setattr(denoiser_training, "tto_object_pairs", lambda *a, **k: (_ for _ in ()).throw(AssertionError("rendered again")))
+    assert torch.equal(cached_pairs(trained[0], chairs, tmp_path, with_tto, progress=False)["inputs"], pairs["inputs"])
+    with pytest.raises(ValueError, match="TTO renders of other settings"):
+        cached_pairs(trained[0], chairs, tmp_path, replace(with_tto, tto_views=2), progress=False)
+    with pytest.raises(ValueError, match="validation objects the prior did not train on"):
+        cached_pairs(trained[0], chairs, tmp_path / "other", replace(TINY_PAIRS, tto_objects=len(val) + 1), progress=False)
+
+
 def test_resume_without_checkpoint_says_what_to_do(trained, chairs, tmp_path):
     with pytest.raises(FileNotFoundError, match="without --resume"):
         train_denoiser(trained[0], chairs, tmp_path, tiny_training(5), resume=True, progress=False)

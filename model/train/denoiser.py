@@ -5,7 +5,10 @@ view's ground truth), scored by L2 on colour over white and alpha, as the paper 
 Besides the instances' own codes, some pairs render NeRFs of *perturbed* codes (Gaussian noise at
 a fraction of the codebook's per-dimension spread) against the same ground truth: a code near,
 but not at, the instance's gives the floaters, holes and haze a test-time optimisation leaves,
-which the instances' own NeRFs (fitted to these very views) rarely show.
+which the instances' own NeRFs (fitted to these very views) rarely show. Optionally
+(``tto_objects``), objects of the dataset's validation split, which the prior never saw, are
+inverted by single-view TTO and their training views rendered from the result: the haze TTO
+leaves on an unseen shape itself, paired with that shape's ground truth.
 
 Renders are computed once and cached on disk (``OUT/pairs/``: one safetensors file of uint8
 images per instance, keyed by the prior's sha256 and the pair settings), so a rerun or a resumed
@@ -31,7 +34,7 @@ import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from model.data.dataset import load_views
+from model.data.dataset import load_index, load_views
 from model.denoise.io import save_denoiser
 from model.denoise.vqvae import (
     DenoiserConfig,
@@ -45,6 +48,7 @@ from model.nerf import config
 from model.nerf.images import to_uint8
 from model.nerf.renderer import RenderConfig, render_image
 from model.optimize.step import adam_with_decay, mse_to_psnr
+from model.optimize.tto import TTOConfig, invert
 from model.prior.codes import generated_grid
 from model.prior.io import PRIOR_WEIGHTS, Prior, load_prior
 
@@ -64,6 +68,8 @@ class PairsConfig:
     perturbed_nerfs: int = 1  # NeRFs of perturbed codes per instance
     perturbed_views: int = 2  # training views rendered from each of them
     code_noise: tuple[float, float] = (0.25, 0.75)  # noise range, in units of the codebook's per-dimension std
+    tto_objects: int = 0  # validation-split objects inverted by TTO from their first test view (0: none)
+    tto_views: int = 24  # training views of each rendered from its TTO NeRF
     validation_instances: int = 8
     validation_views: int = 2  # held-out (test-frame) views per validation instance
     render: RenderConfig = field(default_factory=RenderConfig)
@@ -130,6 +136,29 @@ def instance_pairs(prior: Prior, data: Path, instance: int, cfg: PairsConfig) ->
     return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
 
 
+TTO_FIELDS = ("tto_objects", "tto_views")
+
+
+def tto_objects(data: Path, prior: Prior, count: int) -> list[str]:
+    """The first ``count`` validation-split objects of ``data`` (none of them a prior instance)."""
+    seen = {inst["id"] for inst in prior.instances}
+    found = [e.id for e in load_index(data) if e.split == "val" and e.id not in seen]
+    if len(found) < count:
+        raise ValueError(f"{data} has {len(found)} validation objects the prior did not train on; ask for at most that many TTO objects")
+    return found[:count]
+
+
+def tto_object_pairs(prior: Prior, data: Path, object_id: str, cfg: PairsConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pairs of an unseen object: its NeRF from single-view TTO (first test view) rendered at
+    ``cfg.tto_views`` of its training views, against their ground truth."""
+    held = load_views(data / object_id, split="test").subset([0])
+    result = invert(prior.net, prior.scene, held.images, held.c2w, held.cameras, TTOConfig(seed=cfg.seed))
+    views = load_views(data / object_id, split="train")
+    picks = spread(cfg.tto_views, len(views.files))
+    params = {k: v.to(prior.device) for k, v in result.params.items()}
+    return _render_pairs(prior, params, views.subset(picks), cfg.render)
+
+
 def spread(count: int, instances: int) -> list[int]:
     """``count`` instance numbers spread evenly over ``instances``."""
     return sorted({round(i * (instances - 1) / max(count - 1, 1)) for i in range(min(count, instances))})
@@ -156,8 +185,11 @@ def cached_pairs(run: Path, data: Path, out: Path, cfg: PairsConfig, *, progress
     ``val_inputs``, ``val_targets``), rendered once into ``out/pairs`` and read back afterwards."""
     folder = Path(out) / PAIRS_DIR
     folder.mkdir(parents=True, exist_ok=True)
-    # an instance's renders do not depend on how many instances are used, so that is not in the key
-    key = {"prior": prior_digest(run), "pairs": {k: v for k, v in config.to_dict(cfg).items() if k != "instances"}}
+    # an instance's renders do not depend on how many instances are used, so that is not in the
+    # key; the TTO pairs have their own files and key
+    digest = prior_digest(run)
+    settings = config.to_dict(cfg)
+    key = {"prior": digest, "pairs": {k: v for k, v in settings.items() if k != "instances" and k not in TTO_FIELDS}}
     key_file = folder / PAIRS_KEY
     if key_file.is_file() and json.loads(key_file.read_text()) != key:
         raise ValueError(f"{folder} holds renders of another prior or other pair settings; delete it or choose another --out")
@@ -177,6 +209,20 @@ def cached_pairs(run: Path, data: Path, out: Path, cfg: PairsConfig, *, progress
         stored = load_file(str(path))
         inputs.append(stored["inputs"])
         targets.append(stored["targets"])
+    if cfg.tto_objects:
+        tto_key = {"prior": digest, "tto_views": cfg.tto_views, "render": settings["render"], "seed": cfg.seed}
+        tto_key_file = folder / "tto-pairs.json"
+        if tto_key_file.is_file() and json.loads(tto_key_file.read_text()) != tto_key:
+            raise ValueError(f"{folder} holds TTO renders of other settings; delete its tto-* files or choose another --out")
+        tto_key_file.write_text(json.dumps(tto_key, indent=2))
+        for object_id in tqdm(tto_objects(Path(data), prior, cfg.tto_objects), desc="TTO pairs", unit="object", disable=not progress):
+            path = folder / f"tto-{object_id}.safetensors"
+            if not path.is_file():
+                x, y = tto_object_pairs(prior, Path(data), object_id, cfg)
+                _atomic_save({"inputs": x, "targets": y}, path)
+            stored = load_file(str(path))
+            inputs.append(stored["inputs"])
+            targets.append(stored["targets"])
     val_path = folder / "validation.safetensors"
     if not val_path.is_file():
         x, y = validation_pairs(prior, Path(data), cfg)
