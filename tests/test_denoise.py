@@ -234,7 +234,7 @@ def test_tto_pairs_render_unseen_validation_objects_against_their_ground_truth(t
     assert torch.equal(cached_pairs(trained[0], chairs, tmp_path, with_tto, progress=False)["inputs"], pairs["inputs"])
     with pytest.raises(ValueError, match="TTO renders of other settings"):
         cached_pairs(trained[0], chairs, tmp_path, replace(with_tto, tto_views=2), progress=False)
-    with pytest.raises(ValueError, match="validation objects the prior did not train on"):
+    with pytest.raises(ValueError, match="outside its test split that the prior did not train on"):
         cached_pairs(trained[0], chairs, tmp_path / "other", replace(TINY_PAIRS, tto_objects=len(val) + 1), progress=False)
 
 

@@ -23,7 +23,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--perturbed-nerfs", type=int, default=pair_defaults.perturbed_nerfs, help="NeRFs of perturbed codes per instance")
     parser.add_argument("--perturbed-views", type=int, default=pair_defaults.perturbed_views, help="views rendered from each perturbed NeRF")
     parser.add_argument("--tto-objects", type=int, default=pair_defaults.tto_objects,
-                        help="validation-split objects (unseen by the prior) inverted by single-view TTO, their renders paired with their ground truth")
+                        help="objects the prior never saw (outside the test split) inverted by single-view TTO, their renders paired with their ground truth")
+    parser.add_argument("--tto-data", default=pair_defaults.tto_data,
+                        help="the dataset of the TTO objects, e.g. one made with --augment (default: --data)")
     parser.add_argument("--tto-views", type=int, default=pair_defaults.tto_views, help="training views rendered per TTO object")
     parser.add_argument("--validate-every", type=int, default=defaults.validate_every, help="steps between validations (0: never)")
     parser.add_argument("--checkpoint-every", type=int, default=defaults.checkpoint_every)
@@ -41,7 +43,8 @@ def run(args) -> int:
         if getattr(args, name) < 0:
             raise ValueError(f"--{name.replace('_', '-')} must not be negative")
     pairs = PairsConfig(instances=args.instances, clean_views=args.clean_views, perturbed_nerfs=args.perturbed_nerfs, perturbed_views=args.perturbed_views,
-                        tto_objects=args.tto_objects, tto_views=args.tto_views, seed=args.seed)
+                        tto_objects=args.tto_objects, tto_views=args.tto_views,
+                        tto_data=str(args.tto_data or ""), seed=args.seed)
     cfg = DenoiserTrainConfig(
         pairs=pairs, steps=args.steps, batch=args.batch, crop=args.crop, lr=args.lr,
         validate_every=args.validate_every, checkpoint_every=args.checkpoint_every, seed=args.seed,

@@ -6,9 +6,10 @@ Besides the instances' own codes, some pairs render NeRFs of *perturbed* codes (
 a fraction of the codebook's per-dimension spread) against the same ground truth: a code near,
 but not at, the instance's gives the floaters, holes and haze a test-time optimisation leaves,
 which the instances' own NeRFs (fitted to these very views) rarely show. Optionally
-(``tto_objects``), objects of the dataset's validation split, which the prior never saw, are
-inverted by single-view TTO and their training views rendered from the result: the haze TTO
-leaves on an unseen shape itself, paired with that shape's ground truth.
+(``tto_objects``), objects the prior never saw (the dataset's validation split, or a dataset of
+deformed copies of the training meshes, ``tto_data``; never a test split) are inverted by
+single-view TTO and their training views rendered from the result: the haze TTO leaves on an
+unseen shape itself, paired with that shape's ground truth.
 
 Renders are computed once and cached on disk (``OUT/pairs/``: one safetensors file of uint8
 images per instance, keyed by the prior's sha256 and the pair settings), so a rerun or a resumed
@@ -68,8 +69,9 @@ class PairsConfig:
     perturbed_nerfs: int = 1  # NeRFs of perturbed codes per instance
     perturbed_views: int = 2  # training views rendered from each of them
     code_noise: tuple[float, float] = (0.25, 0.75)  # noise range, in units of the codebook's per-dimension std
-    tto_objects: int = 0  # validation-split objects inverted by TTO from their first test view (0: none)
+    tto_objects: int = 0  # objects the prior never saw inverted by TTO from their first test view (0: none)
     tto_views: int = 24  # training views of each rendered from its TTO NeRF
+    tto_data: str = ""  # the dataset they come from (default: the prior's); never its test split
     validation_instances: int = 8
     validation_views: int = 2  # held-out (test-frame) views per validation instance
     render: RenderConfig = field(default_factory=RenderConfig)
@@ -136,16 +138,18 @@ def instance_pairs(prior: Prior, data: Path, instance: int, cfg: PairsConfig) ->
     return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
 
 
-TTO_FIELDS = ("tto_objects", "tto_views")
+TTO_FIELDS = ("tto_objects", "tto_views", "tto_data")
 
 
 def tto_objects(data: Path, prior: Prior, count: int) -> list[str]:
-    """The first ``count`` validation-split objects of ``data`` (none of them a prior instance)."""
+    """``count`` objects of ``data`` outside its test split that are not prior instances (its
+    validation objects, or shapes the prior never saw such as deformed copies of its meshes),
+    spread evenly over them in id order."""
     seen = {inst["id"] for inst in prior.instances}
-    found = [e.id for e in load_index(data) if e.split == "val" and e.id not in seen]
+    found = sorted(e.id for e in load_index(data) if e.split != "test" and e.id not in seen)
     if len(found) < count:
-        raise ValueError(f"{data} has {len(found)} validation objects the prior did not train on; ask for at most that many TTO objects")
-    return found[:count]
+        raise ValueError(f"{data} has {len(found)} objects outside its test split that the prior did not train on; ask for at most that many TTO objects")
+    return [found[n] for n in spread(count, len(found))]
 
 
 def tto_object_pairs(prior: Prior, data: Path, object_id: str, cfg: PairsConfig) -> tuple[torch.Tensor, torch.Tensor]:
@@ -210,15 +214,16 @@ def cached_pairs(run: Path, data: Path, out: Path, cfg: PairsConfig, *, progress
         inputs.append(stored["inputs"])
         targets.append(stored["targets"])
     if cfg.tto_objects:
-        tto_key = {"prior": digest, "tto_views": cfg.tto_views, "render": settings["render"], "seed": cfg.seed}
+        tto_data = Path(cfg.tto_data) if cfg.tto_data else Path(data)
+        tto_key = {"prior": digest, "tto_views": cfg.tto_views, "tto_data": str(tto_data), "render": settings["render"], "seed": cfg.seed}
         tto_key_file = folder / "tto-pairs.json"
         if tto_key_file.is_file() and json.loads(tto_key_file.read_text()) != tto_key:
             raise ValueError(f"{folder} holds TTO renders of other settings; delete its tto-* files or choose another --out")
         tto_key_file.write_text(json.dumps(tto_key, indent=2))
-        for object_id in tqdm(tto_objects(Path(data), prior, cfg.tto_objects), desc="TTO pairs", unit="object", disable=not progress):
+        for object_id in tqdm(tto_objects(tto_data, prior, cfg.tto_objects), desc="TTO pairs", unit="object", disable=not progress):
             path = folder / f"tto-{object_id}.safetensors"
             if not path.is_file():
-                x, y = tto_object_pairs(prior, Path(data), object_id, cfg)
+                x, y = tto_object_pairs(prior, tto_data, object_id, cfg)
                 _atomic_save({"inputs": x, "targets": y}, path)
             stored = load_file(str(path))
             inputs.append(stored["inputs"])
