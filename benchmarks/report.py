@@ -519,6 +519,7 @@ def text_to_nerf_section(data: dict) -> list[str]:
                 f"{known['read_as_the_prompt_colour']} as the colour the prompt was written for; the rest are left to the query network.", ""]
                if known else []),
              f"Target >= 90%: colour {'met' if data['colour_accuracy'] >= 0.9 else 'not met'}, type {'met' if data['type_accuracy'] >= 0.9 else 'not met'}. "
+             + (f"Selection: {data['selection_note']}. " if data.get("selection_note") else "") +
              "Grid: `benchmarks/results/text_to_nerf.png`.", ""]
     truth = data.get("colour_measure_on_ground_truth")
     if truth:
