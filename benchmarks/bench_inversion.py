@@ -224,8 +224,9 @@ def start(objects: int) -> None:
     from model.eval.generalization import test_objects
     from model.optimize.pose import PixelBank
     from model.optimize.tto import TTOConfig, nearest_instance
+    from model.prior.io import load_prior
 
-    prior = load_prior_once()
+    prior = load_prior(RUN)
     net, cfg = prior.net, TTOConfig()
     coarse = replace(cfg.render, samples_per_ray=cfg.init_samples_per_ray)
     rows = []
@@ -246,12 +247,6 @@ def start(objects: int) -> None:
         "shortlist_shapes": cfg.init_shapes, "instances": net.instances, "shapes": int(net.shape_index.max()) + 1,
         "threads": torch.get_num_threads(), "per_object": rows, "command": "python -m benchmarks.bench_inversion --stage start",
     })
-
-
-def load_prior_once():
-    from model.prior.io import load_prior
-
-    return load_prior(RUN)
 
 
 STAGES = {"generalization": generalization, "multiview": multiview, "speed": speed, "poses": poses, "start": start}

@@ -248,11 +248,12 @@ def test_snapping_and_nearest_instances_use_the_codebook():
     assert torch.equal(snapped_shape, shapes[[4]]) and torch.equal(snapped_color, colors[[1]])
     assert nearest_instances(net, shapes[[2]], colors[[2]], shapes, colors, k=3)[0, 0] == 2
     # a colour the prompt names restricts the colour to its wearers; the shape is untouched
-    from model.prior.query import code_distances, colour_rows
+    from model.prior.query import code_distances, colour_rows, instance_colours
 
-    instances = [{"caption": f"a {c} chair"} for c in ("red", "blue", "red", "green", "blue", "red")]
+    instances = instance_colours([{"caption": f"a {c} chair"} for c in ("red", "blue", "red", "green", "blue", "red")])
     wearers = colour_rows(instances, "blue")
     assert wearers.tolist() == [False, True, False, False, True, False] and colour_rows(instances, None) is None
+    assert instance_colours([{"caption": "a chair"}, {}]) == [None, None]
     _, blue = snap_codes(net, shape, colors[[0]], shapes, colors, wearers)
     distances = code_distances(net, shape, colors[[0]], shapes, colors)[1][0]
     assert torch.equal(blue, colors[[1 if distances[1] < distances[4] else 4]])

@@ -36,8 +36,8 @@ from model.nerf import config
 from model.nerf.fields import Field, FieldParams
 from model.nerf.rays import Intrinsics
 from model.nerf.scene import SceneBox
-from model.prior.captions import caption_colour
 from model.prior.hypernet import HyperNetConfig, HyperNetwork
+from model.prior.query import instance_colours
 
 
 class Bundle:
@@ -69,7 +69,7 @@ class Bundle:
         self._outputs = [o.name for o in self._session.get_outputs()]
         components = manifest.get("components", [])
         self.query = QueryModel(self.path, self.shape_codes, self.color_codes, threads=threads,
-                                instance_colours=[caption_colour(str(inst.get("caption", ""))) for inst in self.instances]) if "query" in components else None
+                                instance_colours=instance_colours(self.instances)) if "query" in components else None
         self.denoiser_path: Path | None = self.path / DENOISER_WEIGHTS if "denoiser" in components else None
         self._net: HyperNetwork | None = None
         self._net_lock = threading.Lock()

@@ -97,7 +97,10 @@ class QueryModel:
     def embed_text(self, text: str) -> np.ndarray:
         """The joint embedding ``[E]`` of a prompt, its colour words read as palette colours
         (``model.prior.colour_words``: the text encoder knows few colour names)."""
-        return self._joint("text", embed_texts(self._embedder("text"), [palette_prompt(text).prompt]))
+        return self._text_joint(palette_prompt(text))
+
+    def _text_joint(self, read: PromptColour) -> np.ndarray:
+        return self._joint("text", embed_texts(self._embedder("text"), [read.prompt]))
 
     def embed_image(self, rgba) -> np.ndarray:
         """The joint embedding ``[E]`` of a straight-alpha RGBA (or RGB) image ``[H, W, 4]`` in [0, 1]."""
@@ -127,8 +130,7 @@ class QueryModel:
         """Codes of a prompt and what was read from it (``model.prior.colour_words``): its colour
         words read as palette colours, and the colour it names constraining the snapped colour code."""
         read = palette_prompt(text)
-        shape, color = self.codes(self._joint("text", embed_texts(self._embedder("text"), [read.prompt])), snap, read.palette)
-        return shape, color, read
+        return (*self.codes(self._text_joint(read), snap, read.palette), read)
 
     def retrieve(self, embedding, k: int = 5) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` instances whose codes are nearest the codes the query network predicts from the

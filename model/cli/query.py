@@ -120,7 +120,6 @@ def cmd_text(args) -> int:
     import time
 
     from model.nerf.device import default_device
-    from model.prior.colour_words import palette_prompt
     from model.prior.outputs import write_outputs
     from model.prior.query import QueryPipeline, nearest_instances
 
@@ -130,10 +129,9 @@ def cmd_text(args) -> int:
     start = time.perf_counter()
     pipeline = QueryPipeline.from_runs(Path(args.run), query, default_device())
     loaded = time.perf_counter()
-    embedding = pipeline.embed(text=args.prompt)
+    embedding, read = pipeline.text_embedding(args.prompt)
     embedded = time.perf_counter()
     raw_shape, raw_color = pipeline.codes(embedding, snap=False)
-    read = palette_prompt(args.prompt)
     shape, color = (raw_shape, raw_color) if args.raw else pipeline.codes(embedding, snap=True, colour=read.palette)
     coded = time.perf_counter()
     out = Path(args.out)

@@ -55,7 +55,6 @@ from model.nerf.rays import Intrinsics
 from model.nerf.renderer import RenderConfig, render_image
 from model.nerf.segment import SegmentationError, object_rgba
 from model.prior.captions import COLOUR_SYNONYMS, attributes, held_out_prompt
-from model.prior.colour_words import palette_prompt
 from model.prior.codes import generated_grid
 from model.prior.embedders import embed_queries
 from model.prior.embedding_cache import view_embeddings
@@ -406,7 +405,7 @@ def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed
                  grid_png: Path | None = None) -> dict:
     """Generate a NeRF per held-out prompt and score its dominant colour and its type; with
     ``read_colours`` the prompt's colour words are read with the colour lexicon first and the
-    colour it names constrains the snapped colour code (``QueryPipeline.text_codes``)."""
+    colour it names constrains the snapped colour code (``QueryPipeline.text_embedding``)."""
     data = Path(data)
     prior = pipeline.prior
     index = {e.id: e.to_json() for e in load_index(data)}
@@ -416,8 +415,9 @@ def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed
     poses = evaluation_poses()[list(COLOUR_POSES)]
     rows, tiles, labels = [], [], []
     for item in tqdm(prompt_set(entries, prompts, seed), desc="text-to-NeRF", unit="prompt"):
-        raw_shape, raw_color, read = pipeline.text_codes(item["prompt"], snap=False, read_colours=read_colours)
-        shape, color = pipeline.text_codes(item["prompt"], read_colours=read_colours)[:2] if snap else (raw_shape, raw_color)
+        embedding, read = pipeline.text_embedding(item["prompt"], read_colours)
+        raw_shape, raw_color = pipeline.codes(embedding, snap=False)
+        shape, color = pipeline.codes(embedding, snap=True, colour=read.palette) if snap else (raw_shape, raw_color)
         images, opacity = render_nerf(prior, shape, color, poses, camera)
         colour, shares = dominant_colour_of(images, opacity)
         nearest = int(nearest_instances(pipeline.net, raw_shape, raw_color, pipeline.shape_book, pipeline.color_book)[0, 0])
@@ -478,9 +478,9 @@ def query_timings(pipeline: QueryPipeline, prompt: str, image: torch.Tensor, cam
         return value
 
     for _ in range(repeats + 1):
-        embedding = timed("text_embedding", lambda: pipeline.embed(text=prompt))
+        embedding, read = timed("text_embedding", lambda: pipeline.text_embedding(prompt))
         timed("image_embedding", lambda: pipeline.embed(image=image))
-        shape, color = timed("query_network", lambda: pipeline.codes(embedding, snap=True, colour=palette_prompt(prompt).palette))
+        shape, color = timed("query_network", lambda: pipeline.codes(embedding, snap=True, colour=read.palette))
         with torch.no_grad():
             params = timed("hypernetwork", lambda: prior.net.params_from_codes(shape, color))
         grid = timed("occupancy_grid", lambda: generated_grid(params, prior.net.cfg.field, prior.scene))

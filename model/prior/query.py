@@ -276,11 +276,16 @@ def snap_codes(net: QueryNetwork, shape: torch.Tensor, color: torch.Tensor, shap
     return shape_book[shape_d.argmin(dim=1)].to(shape), color_book[color_d.argmin(dim=1)].to(color)
 
 
-def colour_rows(instances: list[dict], colour: str | None) -> torch.Tensor | None:
-    """``[I]`` bool: the instances whose caption names palette ``colour`` (None for no colour)."""
+def instance_colours(instances: list[dict]) -> list[str | None]:
+    """The palette colour each instance's caption names (None where it names none)."""
+    return [caption_colour(str(inst.get("caption", ""))) for inst in instances]
+
+
+def colour_rows(colours: list[str | None], colour: str | None) -> torch.Tensor | None:
+    """``[I]`` bool: the instances (of :func:`instance_colours`) wearing palette ``colour`` (None for no colour)."""
     if colour is None:
         return None
-    return torch.tensor([caption_colour(str(inst.get("caption", ""))) == colour for inst in instances])
+    return torch.tensor([c == colour for c in colours])
 
 
 def instance_bank(view_embeddings: torch.Tensor) -> torch.Tensor:
@@ -323,6 +328,7 @@ class QueryPipeline:
         self.embedders = {m: load_embedder(slot.name, self.device) for slot in net.slots for m in slot.modalities}
         with torch.no_grad():
             self.shape_book, self.color_book = prior.net.codes(torch.arange(len(prior.instances), device=prior.device))
+        self.instance_colours = instance_colours(prior.instances)
 
     @classmethod
     def from_runs(cls, run: Path, query: Path, device=None) -> QueryPipeline:
@@ -330,14 +336,14 @@ class QueryPipeline:
 
         return cls(load_prior(run, device), load_query(query, device), device)
 
-    def embed(self, text: str | None = None, image: torch.Tensor | None = None, read_colours: bool = True) -> torch.Tensor:
-        """The joint embedding ``[1, E]`` of a prompt (with ``read_colours``, its colour words read
-        as palette colours, ``model.prior.colour_words``) and/or an RGBA image ``[H, W, 4]``."""
+    def embed(self, text: str | None = None, image: torch.Tensor | None = None) -> torch.Tensor:
+        """The joint embedding ``[1, E]`` of a prompt as it is and/or an RGBA image ``[H, W, 4]``
+        (see :meth:`text_embedding` for a prompt with its colour words read)."""
         from model.prior.embedders import embed_queries, embed_texts
 
         parts = {}
         if text is not None:
-            parts["text"] = embed_texts(self._embedder("text"), [palette_prompt(text).prompt if read_colours else text])
+            parts["text"] = embed_texts(self._embedder("text"), [text])
         if image is not None:
             parts["image"] = embed_queries(self._embedder("image"), image[None] if image.ndim == 3 else image)
         return self.net.joint(**parts)
@@ -353,12 +359,12 @@ class QueryPipeline:
         ``colour`` restricts the colour code to the instances wearing it."""
         shape, color = self.net(embedding.to(self.device))
         if snap:
-            shape, color = snap_codes(self.net, shape, color, self.shape_book, self.color_book, colour_rows(self.prior.instances, colour))
+            shape, color = snap_codes(self.net, shape, color, self.shape_book, self.color_book, colour_rows(self.instance_colours, colour))
         return shape, color
 
-    def text_codes(self, prompt: str, snap: bool = True, read_colours: bool = True) -> tuple[torch.Tensor, torch.Tensor, PromptColour]:
-        """Codes ``([1, S], [1, C])`` of a prompt and what was read from it; with ``read_colours``
-        its colour words are read as palette colours and the colour it names constrains the snap."""
+    def text_embedding(self, prompt: str, read_colours: bool = True) -> tuple[torch.Tensor, PromptColour]:
+        """The joint embedding ``[1, E]`` of a prompt and what was read from it: with
+        ``read_colours`` its colour words read as palette colours (``model.prior.colour_words``);
+        pass the read palette colour to :meth:`codes` to constrain the snapped colour code."""
         read = palette_prompt(prompt) if read_colours else PromptColour(prompt)
-        shape, color = self.codes(self.embed(text=prompt, read_colours=read_colours), snap, read.palette)
-        return shape, color, read
+        return self.embed(text=read.prompt), read
