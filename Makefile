@@ -40,16 +40,18 @@ PRIOR := runs/prior-cpu
 # Rebuild the demo bundle from scratch on the project's own trainer: the Sweet Home 3D chairs with
 # colour variants (about 5 min; needs `apt-get update` once for the furniture package), the prior
 # (20000 steps, 64 min on 2 cores; resumes), the query network (embeds 48 renders per instance,
-# cached, so a retrain takes minutes), the denoiser (3000 steps, about 12 min), then the export (15 s). Steps already done
+# cached, so a retrain takes minutes), the denoiser (TTO of 12 validation chairs for its pairs, then 3000 steps; about
+# 20 min), then the export (about 2 min: it measures each instance's colours in renders). Steps already done
 # are skipped. Remove runs/ and data/ to start over.
 bundle: install
 	test -f $(SH3D)/index.json || $(BIN)/hypnerf data import-sh3d --out $(SH3D) --category chair --variants 4 --views 91 --res 128
 	test -f $(PRIOR)/hypernet.safetensors || $(BIN)/hypnerf train --data $(SH3D) --out $(PRIOR) --preset cpu --steps 20000 \
 		--objects-per-step 8 --rays 4096 --validate-every 1000 --checkpoint-every 1000 $$(test -f $(PRIOR)/checkpoint.pt && echo --resume)
 	test -f runs/query/cpu/query.safetensors || OMP_NUM_THREADS=1 $(BIN)/hypnerf train-query --run $(PRIOR) --data $(SH3D) --out runs/query/cpu --views 48 --head shape-codebook
-	test -f runs/denoise/denoiser/denoiser.safetensors || $(BIN)/hypnerf train-denoiser --run $(PRIOR) --data $(SH3D) --out runs/denoise/denoiser --steps 3000
+	test -f runs/denoise/denoiser-tto/denoiser.safetensors || OMP_NUM_THREADS=1 $(BIN)/hypnerf train-denoiser --run $(PRIOR) --data $(SH3D) \
+		--out runs/denoise/denoiser-tto --steps 3000 --instances 0 --tto-objects 12 --tto-views 24
 	rm -rf $(BUNDLE)
-	$(BIN)/hypnerf export --run $(PRIOR) --out $(BUNDLE) --data $(SH3D) --query runs/query/cpu --denoiser runs/denoise/denoiser
+	$(BIN)/hypnerf export --run $(PRIOR) --out $(BUNDLE) --data $(SH3D) --query runs/query/cpu --denoiser runs/denoise/denoiser-tto
 
 demo: install
 	$(BIN)/hypnerf demo --out runs/demo

@@ -26,6 +26,7 @@ from model.prior.query import (
     InputSlot,
     QueryConfig,
     QueryNetwork,
+    colour_wearers,
     load_query,
     nearest_instances,
     save_query,
@@ -313,11 +314,26 @@ def test_query_embeds_into_its_slots_and_refuses_another_embedder_version(full_b
     assert shape.shape == (16,) and color.shape == (16,) and np.isfinite(shape).all()
     # the colour a prompt names restricts the snapped colour code to the instances wearing it
     bundle = load_bundle(full_bundle)
+    # the export measured each instance's colours in renders of its own codes
+    assert query.rendered_colours is not None and len(query.rendered_colours) == len(bundle.instances)
+    assert [inst["rendered_colours"] for inst in bundle.instances] == query.rendered_colours
     for colour in {c for c in query.instance_colours if c}:
-        wearers = [n for n, c in enumerate(query.instance_colours) if c == colour]
+        wearers = colour_wearers(query.instance_colours, colour, query.rendered_colours)
         _, worn = query.codes(joint, colour=colour)
         assert any(np.array_equal(worn, bundle.color_codes[n]) for n in wearers)
         assert query.text_codes(f"a {colour} chair")[2].palette == colour
     assert len({c for c in query.instance_colours if c}) >= 2
     with pytest.raises(BundleError, match="efficientnet-lite0 embedder is version image-v2.*trained on version image-v1"):
         query.embed_image(np.ones((8, 8, 4), np.float32))
+
+
+def test_rendered_colours_of_an_older_bundle_are_optional_and_bad_ones_are_refused():
+    from model.bundle.load import _rendered_colours
+
+    assert _rendered_colours([{"id": "a"}, {"id": "b"}]) is None
+    shares = [{"red": 0.7, "grey": 0.3}, {}]
+    assert _rendered_colours([{"rendered_colours": s} for s in shares]) == shares
+    with pytest.raises(BundleError, match="rendered_colours.*re-export"):
+        _rendered_colours([{"rendered_colours": {"red": 0.7}}, {"id": "b"}])
+    with pytest.raises(BundleError, match="rendered_colours"):
+        _rendered_colours([{"rendered_colours": {"red": "most"}}])

@@ -11,11 +11,17 @@ import numpy as np
 import pytest
 import torch
 
-from model.prior.captions import HELD_OUT_TEMPLATES, attributes, held_out_prompt, object_type, training_captions
+from model.prior.captions import (
+    HELD_OUT_TEMPLATES,
+    attributes,
+    held_out_prompt,
+    object_type,
+    training_captions,
+)
 from model.prior.query import (
+    InputSlot,
     QueryConfig,
     QueryNetwork,
-    InputSlot,
     instance_bank,
     load_query,
     nearest_instances,
@@ -23,7 +29,12 @@ from model.prior.query import (
     save_query,
     snap_codes,
 )
-from model.prior.sampling import CodeDensity, DensityConfig, interpolate, nearest_code_distance
+from model.prior.sampling import (
+    CodeDensity,
+    DensityConfig,
+    interpolate,
+    nearest_code_distance,
+)
 
 
 @pytest.fixture(autouse=True)
@@ -304,7 +315,12 @@ def test_captions_paraphrase_attributes_and_held_out_prompts_are_new():
 
 def test_training_words_are_disjoint_from_held_out_words():
     from model.data.colours import PALETTE
-    from model.prior.captions import COLOUR_SYNONYMS, TRAIN_COLOUR_WORDS, TRAIN_TYPE_WORDS, TYPE_WORDS
+    from model.prior.captions import (
+        COLOUR_SYNONYMS,
+        TRAIN_COLOUR_WORDS,
+        TRAIN_TYPE_WORDS,
+        TYPE_WORDS,
+    )
 
     held_colours = {w for words in COLOUR_SYNONYMS.values() for w in words}
     train_colours = {w for words in TRAIN_COLOUR_WORDS.values() for w in words}
@@ -316,8 +332,9 @@ def test_training_words_are_disjoint_from_held_out_words():
 
 
 def test_colour_vocabulary_files_survey_names_under_their_colour_and_never_a_held_out_word():
-    from model.data.colours import PALETTE, colour_names
     from matplotlib.colors import XKCD_COLORS, to_rgb
+
+    from model.data.colours import PALETTE, colour_names
     from model.prior.captions import COLOUR_SYNONYMS, colour_vocabulary
 
     vocabulary = colour_vocabulary()
@@ -548,3 +565,64 @@ def test_codebook_heads_train_and_answer_with_codebook_entries(trained, chairs, 
     assert any(torch.equal(shape[0], row) for row in pipeline.shape_book)
     # the codebook head picks a colour entry; the shape-codebook head regresses it (snapped only on request)
     assert any(torch.equal(color[0], row) for row in pipeline.color_book) == colour_is_an_entry
+
+
+# ---------------------------------------------------------------------------------------------
+# Colour measure and colour wearers
+
+
+def test_colour_measure_names_shaded_pixels_by_their_albedo_and_ignores_the_background():
+    from model.data.colours import PALETTE
+    from model.data.raycast import linear_to_srgb, srgb_to_linear
+    from model.prior.colour_measure import (
+        IRRADIANCE,
+        dominant_colour_of,
+        shading_invariant_names,
+    )
+
+    red = srgb_to_linear(np.array(PALETTE["red"]))
+    shaded = [linear_to_srgb(red * IRRADIANCE[0]), linear_to_srgb(red * IRRADIANCE[1])]
+    assert shading_invariant_names(np.stack(shaded)) == ["red", "red"]
+    # 3 red foreground pixels, 1 blue one, and blue background (opacity <= 0.5) that must not count
+    images = torch.tensor(PALETTE["blue"], dtype=torch.float32).expand(1, 2, 4, 3).clone()
+    images[0, 0, :3] = torch.tensor(PALETTE["red"])
+    opacity = torch.zeros(1, 2, 4)
+    opacity[0, 0] = 1.0
+    name, shares = dominant_colour_of(images, opacity)
+    assert name == "red" and shares == pytest.approx({"red": 0.75, "blue": 0.25})
+    assert dominant_colour_of(images, torch.zeros(1, 2, 4)) == (None, {})
+
+
+def test_colour_wearers_prefer_the_instances_their_colour_dominates():
+    from model.prior.query import colour_rows, colour_wearers
+
+    captions = ["red", "red", "blue", None]
+    shares = [{"red": 0.3, "grey": 0.7}, {"red": 0.8, "white": 0.2}, {"grey": 0.6, "blue": 0.4}, {}]
+    assert colour_wearers(captions, "red") == [0, 1]
+    assert colour_wearers(captions, "red", shares) == [1]
+    # no wearer its colour dominates: the captioned ones
+    assert colour_wearers(captions, "blue", shares) == [2]
+    assert colour_wearers(captions, "pink", shares) == [] and colour_wearers(captions, None, shares) == []
+    assert colour_rows(captions, "red", shares).tolist() == [False, True, False, False]
+    assert colour_rows(captions, None, shares) is None
+
+
+def test_rendered_colours_are_measured_per_instance_and_cached_by_the_weights(trained, monkeypatch):
+    import model.prior.colour_measure as colour_measure
+    from model.prior.io import load_prior
+
+    prior = load_prior(trained[0])
+    shares = colour_measure.rendered_colours(prior, resolution=16)
+    assert len(shares) == len(prior.instances)
+    assert all(not s or sum(s.values()) == pytest.approx(1.0, abs=0.01) for s in shares)
+    assert any(shares), "a trained prior renders some foreground"
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("the second measurement of the same prior must come from the cache")
+
+    monkeypatch.setattr(colour_measure, "render_codes", no_render)
+    assert colour_measure.rendered_colours(prior, resolution=16) == shares
+    with torch.no_grad():
+        prior.net.color_codes.weight.add_(1.0)  # other weights: another cache entry, measured anew
+    with pytest.raises(AssertionError, match="from the cache"):
+        colour_measure.rendered_colours(prior, resolution=16)

@@ -3,7 +3,8 @@
 A bundle holds ``weights.safetensors`` (the hypernetwork's state dict as the prior stores it:
 codebooks, heads, shape index), ``hypernet.onnx`` (the graph, reading its weights from that file;
 see ``model.bundle.onnx_export``), ``instances.json`` (id, caption, shape id and shape index of
-each training instance), the optional components, and ``manifest.json`` last, listing the sha256
+each training instance; with a query network also its palette shares in renders of its own codes,
+``model.prior.colour_measure``), the optional components, and ``manifest.json`` last, listing the sha256
 and size of every other file, the configs, the training data's attribution and the components.
 
 Optional components: the query network (``query.safetensors`` and ``query.json`` as its run wrote
@@ -27,6 +28,7 @@ import numpy as np
 from safetensors.torch import load_file
 
 from model.bundle.attribution import training_attribution
+from model.prior.colour_measure import rendered_colours
 from model.bundle.manifest import (
     BUNDLE_FORMAT,
     DENOISER_META,
@@ -133,7 +135,11 @@ def _write(staging: Path, run: Path, prior: Prior, data: Path, query: Path | Non
     shutil.copyfile(run / PRIOR_WEIGHTS, staging / WEIGHTS)
     log.info("exporting the hypernetwork to ONNX (%s)", HYPERNET_ONNX)
     export_hypernet_onnx(prior.net, staging / WEIGHTS, load_file(str(staging / WEIGHTS)), staging / HYPERNET_ONNX)
-    (staging / INSTANCES).write_text(json.dumps(prior.instances, indent=1, ensure_ascii=False))
+    instances = prior.instances
+    if query is not None:
+        log.info("measuring each instance's colours in renders of its own codes (the query network's colour wearers)")
+        instances = [{**inst, "rendered_colours": shares} for inst, shares in zip(instances, rendered_colours(prior), strict=True)]
+    (staging / INSTANCES).write_text(json.dumps(instances, indent=1, ensure_ascii=False))
     configs, components = _configs(prior), ["hypernet"]
     if query is not None:
         configs["query"] = _export_query(query, prior, staging)

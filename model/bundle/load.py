@@ -69,7 +69,8 @@ class Bundle:
         self._outputs = [o.name for o in self._session.get_outputs()]
         components = manifest.get("components", [])
         self.query = QueryModel(self.path, self.shape_codes, self.color_codes, threads=threads,
-                                instance_colours=instance_colours(self.instances)) if "query" in components else None
+                                instance_colours=instance_colours(self.instances),
+                                rendered_colours=_rendered_colours(self.instances)) if "query" in components else None
         self.denoiser_path: Path | None = self.path / DENOISER_WEIGHTS if "denoiser" in components else None
         self._net: HyperNetwork | None = None
         self._net_lock = threading.Lock()
@@ -122,6 +123,17 @@ class Bundle:
                 net.load_state_dict(state)
                 self._net = net.eval().requires_grad_(False)
             return self._net
+
+
+def _rendered_colours(instances: list[dict]) -> list[dict[str, float]] | None:
+    """Each instance's palette shares in renders of its own codes as the export measured them, or
+    None for a bundle exported without them (its colour wearers are then read from captions alone)."""
+    shares = [inst.get("rendered_colours") for inst in instances]
+    if all(s is None for s in shares):
+        return None
+    if not all(isinstance(s, dict) and all(isinstance(k, str) and isinstance(v, int | float) for k, v in s.items()) for s in shares):
+        raise BundleError(f"{INSTANCES} has instances without valid 'rendered_colours' (palette name -> share); re-export the bundle")
+    return shares
 
 
 def load_bundle(path: Path, *, verify: bool = True, threads: int | None = None) -> Bundle:

@@ -35,7 +35,7 @@ from model.bundle.manifest import (
 from model.bundle.runtime import onnx_session
 from model.prior.colour_words import PromptColour, palette_prompt
 from model.prior.embedders import embed_queries, embed_texts, load_embedder
-from model.prior.query import QUERY_META, QUERY_WEIGHTS, InputSlot, slot_for, slot_modalities
+from model.prior.query import QUERY_META, QUERY_WEIGHTS, InputSlot, colour_wearers, slot_for, slot_modalities
 
 
 class QueryModel:
@@ -43,17 +43,19 @@ class QueryModel:
 
     Joint embeddings are float32 ``[E]``: one slot per embedder (``slots``), a query filling the
     slots it has. ``shape_book [I, S]`` and ``color_book [I, C]`` are the bundle's per-instance codes,
-    ``instance_colours`` the palette colour each instance's caption names (None where it names none).
+    ``instance_colours`` the palette colour each instance's caption names (None where it names none),
+    ``rendered_colours`` each instance's palette shares in renders of its own codes (from the export).
     """
 
     def __init__(self, folder: Path, shape_book: np.ndarray, color_book: np.ndarray, *, threads: int | None = None,
-                 instance_colours: list[str | None] | None = None):
+                 instance_colours: list[str | None] | None = None, rendered_colours: list[dict[str, float]] | None = None):
         self.folder = Path(folder)
         meta = json.loads((self.folder / QUERY_META).read_text(encoding="utf-8"))
         self.slots = [InputSlot.from_json(slot) for slot in meta["inputs"]]
         self.input_dim = sum(slot.dim for slot in self.slots)
         self.shape_book, self.color_book = shape_book, color_book
         self.instance_colours = list(instance_colours) if instance_colours is not None else [None] * len(shape_book)
+        self.rendered_colours = rendered_colours
         with safe_open(str(self.folder / QUERY_WEIGHTS), framework="pt") as weights:
             scale = weights.get_tensor("code_scale").float().numpy()
         self._shape_scale, self._color_scale = scale[: shape_book.shape[1]], scale[shape_book.shape[1] :]
@@ -117,11 +119,13 @@ class QueryModel:
 
     def codes(self, embedding, snap: bool = True, colour: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Codes ``(shape [S], color [C])`` of a joint embedding; with ``snap`` each is the nearest
-        codebook entry, the colour among the instances wearing palette ``colour`` when any does."""
+        codebook entry, the colour among the instances wearing palette ``colour`` when any does
+        (``model.prior.query.colour_wearers``: captioned with it and, where any is, dominated by
+        it in renders of their own codes)."""
         shape, color = self._session.run([SHAPE_INPUT, COLOR_INPUT], {EMBEDDING_INPUT: self._check(embedding)[None]})
         shape, color = shape[0], color[0]
         if snap:
-            wearers = [n for n, c in enumerate(self.instance_colours) if colour is not None and c == colour]
+            wearers = colour_wearers(self.instance_colours, colour, self.rendered_colours)
             colours = self.color_book[wearers] if wearers else self.color_book
             shape, color = _nearest(shape, self.shape_book, self._shape_scale), _nearest(color, colours, self._color_scale)
         return shape, color

@@ -43,10 +43,8 @@ from tqdm import tqdm
 
 from model.data.build import RenderSettings
 from model.data.cameras import RADIUS, evaluation_poses, look_at, training_poses
-from model.data.colours import PALETTE
 from model.data.dataset import TRANSFORMS_FILE, load_index, load_views
 from model.data.meshes import RenderMesh, load_mesh_file, normalise
-from model.data.raycast import AMBIENT, LIGHTS, linear_to_srgb, srgb_to_linear
 from model.data.raycast import render_views as raycast_views
 from model.data.variants import material_variants
 from model.nerf.images import composite_over, to_uint8
@@ -56,11 +54,22 @@ from model.nerf.renderer import RenderConfig, render_image
 from model.nerf.segment import SegmentationError, object_rgba
 from model.prior.captions import COLOUR_SYNONYMS, attributes, held_out_prompt
 from model.prior.codes import generated_grid
+from model.prior.colour_measure import COLOUR_POSES, dominant_colour_of, render_codes
 from model.prior.embedders import embed_queries
 from model.prior.embedding_cache import view_embeddings
 from model.prior.io import Prior
-from model.prior.query import QueryPipeline, code_distances, instance_bank, nearest_instances
-from model.prior.sampling import CodeDensity, DensityConfig, interpolate, nearest_code_distance
+from model.prior.query import (
+    QueryPipeline,
+    code_distances,
+    instance_bank,
+    nearest_instances,
+)
+from model.prior.sampling import (
+    CodeDensity,
+    DensityConfig,
+    interpolate,
+    nearest_code_distance,
+)
 
 log = logging.getLogger(__name__)
 
@@ -335,53 +344,9 @@ def _draw_wrapped(draw: ImageDraw.ImageDraw, text: str, origin: tuple[int, int],
 # Text-to-NeRF
 
 
-COLOUR_POSES = (4, 5, 7)  # three of the fixed evaluation poses (40 degrees up, three sides)
 # a colour "shows" when it covers at least this share of the foreground: multi-material chairs are
 # captioned by the material with the largest surface, which need not be the one most in view
 COLOUR_PRESENT_SHARE = 0.25
-
-
-def render_nerf(prior: Prior, shape: torch.Tensor, color: torch.Tensor, poses: np.ndarray, camera: Intrinsics) -> tuple[torch.Tensor, torch.Tensor]:
-    """Renders ``[V, H, W, 3]`` and opacities ``[V, H, W]`` of the NeRF of codes ``[1, S]``, ``[1, C]``."""
-    with torch.no_grad():
-        params = prior.net.params_from_codes(shape, color)
-    grid = generated_grid(params, prior.net.cfg.field, prior.scene)
-    outs = [render_image(params, prior.net.cfg.field, torch.as_tensor(p).float(), camera, RenderConfig(), scene=prior.scene, grid=grid) for p in poses]
-    return torch.stack([o["rgb"] for o in outs]), torch.stack([o["opacity"] for o in outs])
-
-
-# the range of irradiance the ground-truth renderer's shading multiplies albedo by (ambient alone
-# up to ambient plus every light head-on); generated NeRFs reproduce the same shading
-IRRADIANCE = (AMBIENT, AMBIENT + sum(power for _, power in LIGHTS))
-
-
-def shading_invariant_names(rgb: np.ndarray) -> list[str]:
-    """The palette name of each sRGB pixel ``[N, 3]`` up to shading: each palette colour is scaled
-    in linear RGB by the irradiance (within :data:`IRRADIANCE`) that best matches the pixel, and
-    the nearest scaled colour in CIELAB (Delta E, CIE76) names it. A red seat in shadow stays red
-    instead of turning brown."""
-    from skimage.color import rgb2lab
-
-    names = list(PALETTE)
-    palette = srgb_to_linear(np.array([PALETTE[n] for n in names]))
-    pixels = srgb_to_linear(np.clip(rgb, 0.0, 1.0))
-    scale = np.clip(pixels @ palette.T / (palette**2).sum(1), *IRRADIANCE)  # [N, P]
-    candidates = linear_to_srgb(scale[..., None] * palette[None])  # [N, P, 3]
-    distance = np.linalg.norm(rgb2lab(candidates) - rgb2lab(np.clip(rgb, 0, 1))[:, None], axis=-1)
-    return [names[i] for i in distance.argmin(axis=1)]
-
-
-def dominant_colour_of(images: torch.Tensor, opacity: torch.Tensor, limit: int = 4000, seed: int = 0) -> tuple[str | None, dict[str, float]]:
-    """The palette name (:func:`shading_invariant_names`) covering most foreground pixels
-    (opacity > 0.5; at most ``limit`` drawn with a fixed seed) and each name's share."""
-    pixels = images[opacity > 0.5].clamp(0, 1).cpu().numpy().astype(np.float64)
-    if len(pixels) == 0:
-        return None, {}
-    if len(pixels) > limit:
-        pixels = pixels[np.random.default_rng(seed).choice(len(pixels), limit, replace=False)]
-    names = shading_invariant_names(pixels)
-    shares = {name: names.count(name) / len(names) for name in set(names)}
-    return max(sorted(shares), key=shares.get), shares
 
 
 def prompt_set(entries: list[dict], count: int, seed: int) -> list[dict]:
@@ -418,7 +383,7 @@ def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed
         embedding, read = pipeline.text_embedding(item["prompt"], read_colours)
         raw_shape, raw_color = pipeline.codes(embedding, snap=False)
         shape, color = pipeline.codes(embedding, snap=True, colour=read.palette) if snap else (raw_shape, raw_color)
-        images, opacity = render_nerf(prior, shape, color, poses, camera)
+        images, opacity = render_codes(prior, shape, color, poses, camera)
         colour, shares = dominant_colour_of(images, opacity)
         nearest = int(nearest_instances(pipeline.net, raw_shape, raw_color, pipeline.shape_book, pipeline.color_book)[0, 0])
         shape_d, _ = code_distances(pipeline.net, raw_shape, raw_color, pipeline.shape_book, pipeline.color_book)
@@ -426,7 +391,8 @@ def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed
         rows.append({**item, "measured_colour": colour, "colour_shares": shares, "measured_type": kind,
                      "colour_ok": colour == item["colour"], "colour_present": shares.get(item["colour"], 0.0) >= COLOUR_PRESENT_SHARE,
                      "type_ok": kind == item["type"], "nearest_instance": prior.instances[nearest]["id"],
-                     "read_as": read.prompt, "colour_word": read.name, "colour_word_as": read.palette})
+                     "read_as": read.prompt, "colour_word": read.name, "colour_word_as": read.palette,
+                     "colour_code_of": prior.instances[int((pipeline.color_book - color).square().sum(1).argmin())]["id"]})
         tiles.append((images[0], images[1]))
         labels.append(f"{item['prompt']}  ->  {colour}, {kind}")
     ceiling = colour_measure_agreement(data, entries)
@@ -459,6 +425,7 @@ def text_to_nerf(pipeline: QueryPipeline, data: Path, *, prompts: int = 40, seed
         "colour_measure_on_ground_truth": ceiling,
         "timing_ms": timing,
         "colour_present_metric": f"the prompt's colour covers at least {COLOUR_PRESENT_SHARE:.0%} of the foreground pixels",
+        "colour_wearers": "the snapped colour code is the nearest among the instances captioned with the prompt's palette colour and, where any is, dominated by it in renders of their own codes",
         "colour_metric": "palette name covering most foreground pixels (opacity > 0.5) of 3 renders at 40 degrees elevation; a pixel's name is the palette colour nearest in CIELAB after scaling it by the best-matching irradiance of the renderer's shading range",
         "type_metric": "type (from the catalogue name) of the training shape whose code is nearest the predicted shape code",
         "rows": rows,

@@ -12,8 +12,9 @@ before it is embedded: "a photo of a crimson high chair" is read as "a photo of 
 A prompt that already names a palette colour, or none the lexicon knows, is left as it is.
 
 The palette colour a prompt names (written or read) also constrains the colour code: snapping picks
-the nearest colour code among the instances whose caption names that colour
-(``model.prior.query.snap_codes``), so the query network chooses which red, never whether red.
+the nearest colour code among the instances wearing that colour (``model.prior.query.colour_wearers``:
+captioned with it and, where any is, dominated by it in renders of their own codes), so the query
+network chooses which red, never whether red.
 """
 
 from __future__ import annotations

@@ -281,11 +281,28 @@ def instance_colours(instances: list[dict]) -> list[str | None]:
     return [caption_colour(str(inst.get("caption", ""))) for inst in instances]
 
 
-def colour_rows(colours: list[str | None], colour: str | None) -> torch.Tensor | None:
-    """``[I]`` bool: the instances (of :func:`instance_colours`) wearing palette ``colour`` (None for no colour)."""
+def colour_wearers(colours: list[str | None], colour: str | None, shares: list[dict[str, float]] | None = None) -> list[int]:
+    """The instances wearing palette ``colour``: those whose caption names it (``colours``, from
+    :func:`instance_colours`), narrowed to those whose own renders it dominates when ``shares``
+    (each instance's palette shares, ``model.prior.colour_measure.rendered_colours``) are given and
+    any such instance exists. A caption names a chair's largest material, which need not be what
+    its colour code paints most of another shape. Empty for no colour or no wearer."""
+    if colour is None:
+        return []
+    captioned = [n for n, c in enumerate(colours) if c == colour]
+    if shares is None:
+        return captioned
+    dominated = [n for n in captioned if shares[n] and max(sorted(shares[n]), key=shares[n].get) == colour]
+    return dominated or captioned
+
+
+def colour_rows(colours: list[str | None], colour: str | None, shares: list[dict[str, float]] | None = None) -> torch.Tensor | None:
+    """``[I]`` bool: the instances wearing palette ``colour`` (:func:`colour_wearers`), None for no colour."""
     if colour is None:
         return None
-    return torch.tensor([c == colour for c in colours])
+    rows = torch.zeros(len(colours), dtype=torch.bool)
+    rows[colour_wearers(colours, colour, shares)] = True
+    return rows
 
 
 def instance_bank(view_embeddings: torch.Tensor) -> torch.Tensor:
@@ -329,6 +346,16 @@ class QueryPipeline:
         with torch.no_grad():
             self.shape_book, self.color_book = prior.net.codes(torch.arange(len(prior.instances), device=prior.device))
         self.instance_colours = instance_colours(prior.instances)
+        self._rendered_colours: list[dict[str, float]] | None = None
+
+    @property
+    def rendered_colours(self) -> list[dict[str, float]]:
+        """Each instance's palette shares in renders of its own codes, measured on first use (cached on disk)."""
+        if self._rendered_colours is None:
+            from model.prior.colour_measure import rendered_colours
+
+            self._rendered_colours = rendered_colours(self.prior)
+        return self._rendered_colours
 
     @classmethod
     def from_runs(cls, run: Path, query: Path, device=None) -> QueryPipeline:
@@ -356,10 +383,12 @@ class QueryPipeline:
     @torch.no_grad()
     def codes(self, embedding: torch.Tensor, snap: bool = True, colour: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Codes ``([B, S], [B, C])`` of joint embeddings ``[B, E]``; with ``snap``, a palette
-        ``colour`` restricts the colour code to the instances wearing it."""
+        ``colour`` restricts the colour code to the instances wearing it (:func:`colour_wearers`:
+        captioned with it and, where any is, dominated by it in their own renders)."""
         shape, color = self.net(embedding.to(self.device))
         if snap:
-            shape, color = snap_codes(self.net, shape, color, self.shape_book, self.color_book, colour_rows(self.instance_colours, colour))
+            wearers = colour_rows(self.instance_colours, colour, self.rendered_colours) if colour is not None else None
+            shape, color = snap_codes(self.net, shape, color, self.shape_book, self.color_book, wearers)
         return shape, color
 
     def text_embedding(self, prompt: str, read_colours: bool = True) -> tuple[torch.Tensor, PromptColour]:
