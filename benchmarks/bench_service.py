@@ -21,8 +21,6 @@ import json
 import os
 import random
 import shutil
-import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -31,35 +29,11 @@ import httpx
 import numpy as np
 
 from benchmarks.common import ROOT, write_result
+from service.process import ServiceServer
 
 STATE = ROOT / "runs" / "service" / "bench-state"
 CONCURRENCY = (1, 8)
 TARGETS_MS = {"create_uncached": 150.0, "render_128": 100.0, "text_to_first_png": 500.0}
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def start_server(bundle: Path, port: int) -> subprocess.Popen:
-    shutil.rmtree(STATE, ignore_errors=True)
-    STATE.mkdir(parents=True)
-    env = {**os.environ, "HYPNERF_STATE_DIR": str(STATE), "HYPNERF_WORKERS": "1"}  # one worker process for the inversion jobs
-    with open(STATE / "server.log", "wb") as log:
-        process = subprocess.Popen([sys.executable, "-m", "model.cli", "serve", "--bundle", str(bundle), "--port", str(port),
-                                    "--log-level", "warning"], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and process.poll() is None:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
-                return process
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    process.kill()
-    raise RuntimeError(f"the server did not become ready:\n{(STATE / 'server.log').read_text()[-3000:]}")
 
 
 def summary(latencies: list[float], wall: float) -> dict:
@@ -219,13 +193,10 @@ def main(argv: list[str] | None = None) -> int:
     for samples, row in offline["grid_quality"].items():
         print(f"occupancy grid, {samples} sample(s) per cell: {row['ms']} ms, render vs dense reference {row['psnr_vs_dense_median_db']} dB "
               f"median, {row['psnr_vs_dense_min_db']} dB worst of {row['views']} views")
-    port = _free_port()
-    server = start_server(bundle, port)
-    try:
-        http = asyncio.run(http_scenarios(f"http://127.0.0.1:{port}", args.requests, args.slow_requests, args.inversion_requests))
-    finally:
-        server.terminate()
-        server.wait(timeout=30)
+    shutil.rmtree(STATE, ignore_errors=True)
+    # one worker process for the inversion jobs; torch threads as the environment sets them
+    with ServiceServer(bundle, STATE, env={"HYPNERF_WORKERS": "1"}, timeout=120, threads=None) as server:
+        http = asyncio.run(http_scenarios(server.url, args.requests, args.slow_requests, args.inversion_requests))
     targets = {name: {"target_ms": target, "p50_ms_1_client": http[name]["1"]["p50_ms"], "met": http[name]["1"]["p50_ms"] <= target}
                for name, target in TARGETS_MS.items() if name in http}
     for name, row in targets.items():

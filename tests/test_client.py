@@ -31,10 +31,10 @@ import httpx
 import numpy as np
 import pytest
 from PIL import Image
-from service_server import ServiceServer, free_port
 
 from model.bundle import export_bundle
 from model.data.cameras import look_at, spherical_direction
+from service.process import ServiceServer, free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 SDK = ROOT / "clients" / "python"
@@ -46,9 +46,24 @@ except ImportError:  # `make install` has not run since the SDK was added: use t
     import hypnerf_client
     INSTALLED = False
 
-from hypnerf_client import (APIError, AsyncClient, AuthenticationError, Client, ConflictError, HypnerfError, InversionOptions,
-                            JobCanceledError, JobFailedError, JobTimeoutError, NotFoundError, NotImplementedByServerError,
-                            PayloadTooLargeError, RateLimitError, UnsupportedMediaError, ValidationError)
+from hypnerf_client import (
+    APIError,
+    AsyncClient,
+    AuthenticationError,
+    Client,
+    ConflictError,
+    HypnerfError,
+    InversionOptions,
+    JobCanceledError,
+    JobFailedError,
+    JobTimeoutError,
+    NotFoundError,
+    NotImplementedByServerError,
+    PayloadTooLargeError,
+    RateLimitError,
+    UnsupportedMediaError,
+    ValidationError,
+)
 from hypnerf_client._calls import JobWatch
 from hypnerf_client._retry import RetryPolicy, retry_after_seconds
 from hypnerf_client._sse import SSEDecoder

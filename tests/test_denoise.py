@@ -5,10 +5,12 @@ including all-white and all-black inputs."""
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -333,3 +335,29 @@ def test_denoise_and_finetune_end_to_end(instance, denoiser_run):
         denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser, poses[0], views.camera, DenoiseConfig())
     with pytest.raises(ValueError, match="elevations"):
         ring_poses(elevations=(90.0,))
+
+
+def test_invert_command_searches_the_pose_then_denoises_and_finetunes(trained, chairs, denoiser_run, tmp_path, caplog):
+    from model.prior.outputs import load_nerf
+    from PIL import Image
+
+    from model.data.dataset import load_index
+
+    object_id = next(e.id for e in load_index(chairs) if e.split == "test")
+    held = load_views(Path(chairs) / object_id, "test")
+    image = tmp_path / "photo.png"
+    Image.fromarray((held.images[0].numpy() * 255).round().astype(np.uint8), "RGBA").save(image)
+    out = tmp_path / "inverted"
+    command = ["invert", "--run", str(trained[0]), "--image", str(image), "--out", str(out), "--steps", "8", "--rays", "256", "--mesh-resolution", "24"]
+    assert main([*command, "--denoise"]) != 0 and "--denoiser" in caplog.text
+    assert main([*command, "--init", "query"]) != 0 and "--query" in caplog.text
+    assert main([*command, "--image", str(image)]) != 0 and "without --pose give exactly one --image" in caplog.text
+    assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-steps", "6"]) == 0
+    params, grid, _, _, meta = load_nerf(out / "nerf.safetensors")
+    assert meta["denoised"] and meta["pose"] == "searched" and grid.fraction > 0
+    assert all(torch.isfinite(v).all() for v in params.values())
+    pose = json.loads((out / "pose.json").read_text())["frames"][0]
+    c2w = np.array(pose["transform_matrix"])
+    assert c2w.shape == (4, 4) and np.allclose(c2w[:3, :3] @ c2w[:3, :3].T, np.eye(3), atol=1e-4)
+    assert np.linalg.norm(c2w[:3, 3]) > 0.9  # a camera outside the unit box, looking in
+    assert len(list((out / "renders").glob("view_*.png"))) == 12 and (out / "mesh.glb").stat().st_size > 0

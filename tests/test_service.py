@@ -21,7 +21,6 @@ import pytest
 import torch
 import trimesh
 from PIL import Image
-from service_server import ServiceServer
 
 from model.bundle import export_bundle, load_bundle
 from model.data.cameras import look_at, spherical_direction
@@ -29,6 +28,7 @@ from model.nerf.occupancy import OccupancyGrid
 from model.nerf.scene import UNIT_BOX
 from service.cache import NerfCache, NerfEntry, codes_nerf_id
 from service.problems import PROBLEM_JSON, ProblemError
+from service.process import ServiceServer
 from service.settings import Settings
 from service.uploads import decode_image
 
@@ -51,7 +51,13 @@ def query_run(trained, chairs, tmp_path_factory) -> Path:
 
     from model.prior.embedders import TextEmbedder, embed_images, load_embedder
     from model.prior.io import load_prior
-    from model.prior.query import InputSlot, QueryConfig, QueryNetwork, code_distances, save_query
+    from model.prior.query import (
+        InputSlot,
+        QueryConfig,
+        QueryNetwork,
+        code_distances,
+        save_query,
+    )
 
     prior = load_prior(trained[0])
     ids = [inst["id"] for inst in prior.instances]

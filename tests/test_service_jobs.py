@@ -24,13 +24,13 @@ import numpy as np
 import pytest
 from job_store_contract import check_store
 from PIL import Image
-from service_server import ServiceServer, free_port
 
 from model.bundle import export_bundle
 from model.denoise.io import save_denoiser
 from model.denoise.vqvae import VQVAE2Denoiser, tiny_config
 from service.jobs.store import SqliteJobStore
 from service.problems import PROBLEM_JSON
+from service.process import ServiceServer, free_port
 
 SECRET = "webhook-secret-for-tests"
 LEASE_S = 3.0

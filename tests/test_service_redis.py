@@ -17,10 +17,10 @@ import httpx
 import pytest
 import redis
 from job_store_contract import check_store
-from service_server import ROOT, ServiceServer, free_port
 
 from model.bundle import export_bundle
 from service.jobs.redis_store import RedisJobStore
+from service.process import ROOT, ServiceServer, free_port
 
 REDIS_SERVER = shutil.which("redis-server")
 pytestmark = pytest.mark.skipif(

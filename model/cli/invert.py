@@ -3,6 +3,9 @@
 The pose file follows transforms.json: ``camera_angle_x`` (or ``fl_x``/``fl_y``/``cx``/``cy``) at
 the top or per frame, and ``frames`` with a 4x4 camera-to-world ``transform_matrix`` each, in the
 order of the ``--image`` arguments (or with a ``file_path`` each when no ``--image`` is given).
+Without a pose file one image is inverted with its pose searched for (azimuth, elevation) and
+refined with the codes, seen through ``--fov`` or the prior's category camera; the pose found is
+written as ``pose.json`` in the same format.
 """
 
 from __future__ import annotations
@@ -23,32 +26,47 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--run", required=True, help="run folder written by `hypnerf train`")
     parser.add_argument("--image", action="append", default=[], help="an input photo (PNG/JPEG; RGBA keeps its mask); repeat for more views")
     parser.add_argument("--mask", action="append", default=[], help="a mask per --image (white = object), for photos without alpha")
-    parser.add_argument("--pose", required=True, help="transforms.json-style file with the camera of each image")
+    parser.add_argument("--pose", help="transforms.json-style file with the camera of each image; without it the pose of a single image is searched for")
+    parser.add_argument("--fov", type=float, help="horizontal field of view in degrees of an image without a pose file (default: the prior's camera)")
+    parser.add_argument("--refine-pose", action="store_true", help="optimise each given pose with the codes (for roughly known poses)")
+    parser.add_argument("--mirror", action="store_true", help="add each view mirrored left-right, a virtual second view of a symmetric object")
     parser.add_argument("--out", required=True, help="folder for codes, the NeRF, renders, turntable and mesh")
     parser.add_argument("--steps", type=int, default=defaults.steps, help="code optimisation steps")
     parser.add_argument("--finetune-steps", type=int, default=defaults.finetune_steps, help="steps optimising the NeRF's own parameters afterwards")
     parser.add_argument("--rays", type=int, default=defaults.rays_per_step)
-    parser.add_argument("--init", choices=["nearest", "mean"], default=defaults.init, help="starting codes")
+    parser.add_argument("--init", choices=["nearest", "mean", "query"], default=defaults.init,
+                        help="starting codes: the nearest training instance, the mean code, or the query network's guess from the first image (needs --query)")
+    parser.add_argument("--query", help="query network folder from `hypnerf train-query` (for --init query)")
+    parser.add_argument("--denoise", action="store_true", help="then denoise-and-finetune: render fixed views, denoise them, finetune the NeRF on them")
+    parser.add_argument("--denoiser", help="denoiser folder from `hypnerf train-denoiser` (for --denoise)")
+    parser.add_argument("--denoise-steps", type=int, help="finetune steps on the denoised views (default 300)")
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--mesh-resolution", type=int, default=128)
     parser.set_defaults(func=cmd_invert)
 
 
-def read_inputs(images: list[str], masks: list[str], pose_file: Path):
-    """Images ``[V, H, W, 4]`` in [0, 1], poses ``[V, 4, 4]`` and one camera per image from the command's files."""
+def read_inputs(images: list[str], masks: list[str], pose_file: Path | None, camera=None):
+    """Images ``[V, H, W, 4]`` in [0, 1], poses ``[V, 4, 4]`` (None without a pose file) and one
+    camera per image from the command's files; without a pose file ``camera(width, height)`` gives
+    the camera of the single image."""
     import numpy as np
     import torch
     from PIL import Image, UnidentifiedImageError
 
     from model.data.dataset import frame_intrinsics
 
-    try:
-        data = json.loads(pose_file.read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise ValueError(f"cannot read the pose file {pose_file}: {error}") from None
-    frames = data.get("frames") if isinstance(data, dict) else None
-    if not isinstance(frames, list) or not frames:
-        raise ValueError(f"{pose_file} needs a non-empty 'frames' list, each with a 4x4 'transform_matrix'")
+    if pose_file is None:
+        if len(images) != 1:
+            raise ValueError(f"without --pose give exactly one --image (its pose is searched for); got {len(images)}")
+        data, frames = {}, [None]
+    else:
+        try:
+            data = json.loads(pose_file.read_text())
+        except (OSError, json.JSONDecodeError) as error:
+            raise ValueError(f"cannot read the pose file {pose_file}: {error}") from None
+        frames = data.get("frames") if isinstance(data, dict) else None
+        if not isinstance(frames, list) or not frames:
+            raise ValueError(f"{pose_file} needs a non-empty 'frames' list, each with a 4x4 'transform_matrix'")
     paths = [Path(p) for p in images] or [pose_file.parent / f.get("file_path", "") for f in frames]
     if len(paths) != len(frames):
         raise ValueError(f"{len(paths)} images but {len(frames)} frames in {pose_file}; give one frame per image, in order")
@@ -67,19 +85,43 @@ def read_inputs(images: list[str], masks: list[str], pose_file: Path):
                     array[..., 3] = np.asarray(mask, dtype=np.float32) / 255.0
         except (OSError, UnidentifiedImageError) as error:
             raise ValueError(f"cannot read {path} as an image: {error}") from None
+        rgba.append(array)
+        if pose_file is None:
+            cameras.append(camera(array.shape[1], array.shape[0]))
+            continue
         matrix = np.asarray(frame.get("transform_matrix"), dtype=np.float32) if isinstance(frame, dict) else None
         if matrix is None or matrix.shape != (4, 4):
             raise ValueError(f"{pose_file} frame {number}: 'transform_matrix' must be a 4x4 camera-to-world matrix")
-        rgba.append(array)
         poses.append(matrix)
         cameras.append(frame_intrinsics(data, frame, array.shape[1], array.shape[0], f"{pose_file} frame {number}"))
     if len({a.shape for a in rgba}) != 1:
         raise ValueError("all input images must have the same size")
-    return torch.from_numpy(np.stack(rgba)), torch.from_numpy(np.stack(poses)), cameras
+    return torch.from_numpy(np.stack(rgba)), torch.from_numpy(np.stack(poses)) if poses else None, cameras
+
+
+def search_camera(prior, fov: float | None):
+    """``(width, height) -> Intrinsics`` for an image without a pose file: ``fov`` degrees across,
+    or the prior's category camera's field of view."""
+    import math
+
+    from model.nerf.rays import Intrinsics
+
+    if fov is not None and not 1.0 <= fov <= 170.0:
+        raise ValueError(f"--fov is a horizontal field of view in degrees between 1 and 170, got {fov}")
+    cam = prior.meta["camera"]
+    angle = math.radians(fov) if fov is not None else 2.0 * math.atan(0.5 * cam["width"] / cam["fx"])
+    return lambda width, height: Intrinsics.from_fov(width, height, angle)
+
+
+def pose_record(c2w, cameras) -> dict:
+    """transforms.json-style record of the poses TTO ended with (refined or found)."""
+    return {"frames": [{"transform_matrix": pose.tolist(), "fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy}
+                       for pose, cam in zip(c2w.cpu(), cameras)]}
 
 
 def cmd_invert(args) -> int:
-    """Optimise codes for the input views, then write the NeRF, renders, turntable and mesh."""
+    """Optimise codes for the input views (optionally denoise and finetune), then write the NeRF,
+    renders, turntable, mesh and the poses used."""
     from tqdm import tqdm
 
     from model.nerf import config
@@ -88,30 +130,62 @@ def cmd_invert(args) -> int:
     from model.prior.io import load_prior
     from model.prior.outputs import write_outputs
 
-    cfg = TTOConfig(steps=args.steps, finetune_steps=args.finetune_steps, rays_per_step=args.rays, init=args.init, seed=args.seed)
-    images, c2w, cameras = read_inputs(args.image, args.mask, Path(args.pose))
+    if args.init == "query" and not args.query:
+        raise ValueError("--init query starts from the query network's guess; give its folder with --query (from `hypnerf train-query`)")
+    if args.denoise and not args.denoiser:
+        raise ValueError("--denoise needs a denoiser: give its folder with --denoiser (from `hypnerf train-denoiser`)")
     prior = load_prior(Path(args.run), default_device())
-    log.info("optimising codes for %d view(s) of %dx%d", len(images), images.shape[2], images.shape[1])
+    pose_file = Path(args.pose) if args.pose else None
+    images, c2w, cameras = read_inputs(args.image, args.mask, pose_file, search_camera(prior, args.fov) if pose_file is None else None)
+    cfg = TTOConfig(steps=args.steps, finetune_steps=args.finetune_steps, rays_per_step=args.rays,
+                    init="nearest" if args.init == "query" else args.init, seed=args.seed, refine_pose=args.refine_pose, mirror=args.mirror)
+    init = None
+    if args.init == "query":
+        from model.prior.query import QueryPipeline, load_query
+
+        pipeline = QueryPipeline(prior, load_query(Path(args.query), prior.device), prior.device)
+        shape, color = pipeline.codes(pipeline.embed(image=images[0]), snap=False)
+        init = (shape[0], color[0])
+    denoise = None
+    if args.denoise:
+        from dataclasses import replace
+
+        from model.denoise.finetune import DenoiseConfig, denoise_and_finetune_prior
+
+        settings = DenoiseConfig()
+        if args.denoise_steps is not None:
+            if args.denoise_steps < 1:
+                raise ValueError(f"--denoise-steps must be at least 1, got {args.denoise_steps}")
+            settings = replace(settings, finetune=replace(settings.finetune, steps=args.denoise_steps))
+        denoise = denoise_and_finetune_prior(Path(args.denoiser), settings)  # loaded before the long part: a bad folder fails now
+    log.info("optimising codes for %d view(s) of %dx%d%s", len(images), images.shape[2], images.shape[1],
+             ", searching for the pose" if c2w is None else "")
     bar = tqdm(total=cfg.steps + cfg.finetune_steps, desc="invert", unit="step")
 
     def progress(entry: dict) -> None:
         bar.update(entry["step"] + 1 - bar.n)
         bar.set_postfix(phase=entry["phase"], psnr=f"{entry['psnr']:.2f}")
 
-    result = invert(prior.net, prior.scene, images, c2w, cameras, cfg, progress=progress)
+    result = invert(prior.net, prior.scene, images, c2w, cameras, cfg, init=init, progress=progress)
     bar.close()
+    params, grid = result.params, result.grid
+    if denoise is not None:
+        log.info("denoise and finetune: rendering fixed views, denoising them, finetuning the NeRF on them")
+        params, grid = denoise(prior, {k: v.to(prior.device) for k, v in params.items()})
     out = Path(args.out)
     codes = {"shape": result.shape_code.tolist(), "color": result.color_code.tolist(), "init": result.init}
     extra = {"tto": config.to_dict(cfg), "codes": codes, "prior": str(args.run), "wall_s": result.wall_s,
-             "finetuned": cfg.finetune_steps > 0}
+             "finetuned": cfg.finetune_steps > 0, "denoised": denoise is not None, "denoiser": args.denoiser if denoise is not None else None,
+             "pose": "searched" if c2w is None else ("refined" if cfg.refine_pose else "given")}
     log.info("writing renders, turntable and mesh into %s", out)
-    paths = write_outputs(out, result.params, prior.net.cfg.field, result.grid, prior.scene, cameras[0], extra=extra,
-                          mesh_resolution=args.mesh_resolution)
+    paths = write_outputs(out, params, prior.net.cfg.field, grid, prior.scene, cameras[0], extra=extra, mesh_resolution=args.mesh_resolution)
     (out / "codes.json").write_text(json.dumps(codes, indent=2))
     (out / "history.json").write_text(json.dumps(result.history, indent=2))
+    (out / "pose.json").write_text(json.dumps(pose_record(result.c2w, cameras), indent=2))
     final = result.history[-1]
-    print(f"inverted in {result.wall_s:.1f} s from {result.init}: training-view PSNR {final['psnr']:.2f} dB; "
-          f"NeRF {paths['nerf']}, renders {paths['renders']}, turntable {paths['turntable']}, mesh {paths['mesh']}")
+    print(f"inverted in {result.wall_s:.1f} s from {result.init} (pose {extra['pose']}): training-view PSNR {final['psnr']:.2f} dB"
+          + ("; denoised and finetuned" if denoise is not None else "")
+          + f"; NeRF {paths['nerf']}, renders {paths['renders']}, turntable {paths['turntable']}, mesh {paths['mesh']}, poses {out / 'pose.json'}")
     return 0
 
 

@@ -1,17 +1,18 @@
-"""The real server for integration tests: ``hypnerf serve`` (uvicorn) in a subprocess on a free
-loopback port, driven over HTTP.
+"""The real server in a subprocess: ``hypnerf serve`` (uvicorn) on a free loopback port, driven
+over HTTP, for the integration tests and the service benchmark.
 
-Reusable by every service test file::
+::
 
-    from service_server import ServiceServer
+    from service.process import ServiceServer
 
     with ServiceServer(bundle, state_dir, env={"HYPNERF_CACHE_MEMORY_BYTES": "0"}) as server:
         httpx.get(server.url + "/readyz")
         server.restart()           # same port, state and settings (e.g. after a SIGKILL: server.kill())
 
 ``env`` adds ``HYPNERF_*`` settings; by default no embedded job workers are started
-(``HYPNERF_WORKERS=0``) and torch uses one thread. ``start()`` waits until ``/readyz`` answers 200
-and fails with the server's log if it exits or times out.
+(``HYPNERF_WORKERS=0``) and torch uses one thread (``threads``; None leaves the environment's
+setting). ``start()`` waits until ``/readyz`` answers 200 and fails with the server's log if it
+exits or times out.
 """
 
 from __future__ import annotations
@@ -37,13 +38,14 @@ def free_port() -> int:
 
 
 class ServiceServer:
-    def __init__(self, bundle: Path, state_dir: Path, env: dict[str, str] | None = None, timeout: float = 90.0):
+    def __init__(self, bundle: Path, state_dir: Path, env: dict[str, str] | None = None, timeout: float = 90.0, threads: int | None = 1):
         self.bundle = Path(bundle)
         self.state_dir = Path(state_dir)
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.timeout = timeout
-        self.env = {**os.environ, "OMP_NUM_THREADS": "1", "HYPNERF_WORKERS": "0", "HYPNERF_STATE_DIR": str(self.state_dir), **(env or {})}
+        self.env = {**os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads is not None else {}), "HYPNERF_WORKERS": "0",
+                    "HYPNERF_STATE_DIR": str(self.state_dir), **(env or {})}
         self.log_path = self.state_dir / "server.log"
         self.process: subprocess.Popen | None = None
 
