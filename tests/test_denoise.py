@@ -150,6 +150,24 @@ def test_training_crops_inputs_and_targets_alike():
     assert x.shape == y.shape == (5, 4, 12, 12) and torch.equal(x, y) and 0 <= x.min() and x.max() <= 1
 
 
+def test_the_tto_share_draws_batch_elements_from_the_tto_pairs():
+    # 6 pairs of the prior's renders (value 0) then 2 TTO pairs (value 255): whole images, no crop
+    images = torch.cat([torch.zeros(6, 8, 8, 4, dtype=torch.uint8), torch.full((2, 8, 8, 4), 255, dtype=torch.uint8)])
+    pairs = {"inputs": images, "targets": images, "tto_pairs": torch.tensor(2)}
+
+    def tto_fraction(share: float) -> float:
+        cfg = replace(tiny_training(1), batch=400, crop=0, tto_share=share)
+        x, _ = training_batch(pairs, cfg, torch.Generator().manual_seed(0))
+        return float((x.flatten(1).mean(1) > 0.5).float().mean())
+
+    assert tto_fraction(1.0) == 1.0 and tto_fraction(0.0) == pytest.approx(0.25, abs=0.07)
+    assert tto_fraction(0.5) == pytest.approx(0.5, abs=0.08)
+    with pytest.raises(ValueError, match="TTO share"):
+        from model.train.denoiser import train_denoiser
+
+        train_denoiser(Path("unused"), Path("unused"), Path("unused"), replace(tiny_training(1), tto_share=1.5))
+
+
 def test_rgba_layout_round_trips():
     rgba = torch.rand(2, 8, 8, 4)
     rgba[0, :2, :, 3] = 0.0

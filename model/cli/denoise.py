@@ -27,6 +27,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tto-data", default=pair_defaults.tto_data,
                         help="the dataset of the TTO objects, e.g. one made with --augment (default: --data)")
     parser.add_argument("--tto-views", type=int, default=pair_defaults.tto_views, help="training views rendered per TTO object")
+    parser.add_argument("--tto-share", type=float, default=defaults.tto_share,
+                        help="chance that a batch element is a TTO pair, in [0, 1] (default 0: all pairs equally likely)")
     parser.add_argument("--validate-every", type=int, default=defaults.validate_every, help="steps between validations (0: never)")
     parser.add_argument("--checkpoint-every", type=int, default=defaults.checkpoint_every)
     parser.add_argument("--seed", type=int, default=defaults.seed)
@@ -46,7 +48,7 @@ def run(args) -> int:
                         tto_objects=args.tto_objects, tto_views=args.tto_views,
                         tto_data=str(args.tto_data or ""), seed=args.seed)
     cfg = DenoiserTrainConfig(
-        pairs=pairs, steps=args.steps, batch=args.batch, crop=args.crop, lr=args.lr,
+        pairs=pairs, steps=args.steps, batch=args.batch, crop=args.crop, lr=args.lr, tto_share=args.tto_share,
         validate_every=args.validate_every, checkpoint_every=args.checkpoint_every, seed=args.seed,
     )
     summary = train_denoiser(args.run, args.data, args.out, cfg, resume=args.resume, until=args.until)

@@ -88,6 +88,9 @@ class DenoiserTrainConfig:
     lr: float = 1e-3
     final_lr_factor: float = 0.1
     latent_weight: float = 1.0
+    tto_share: float = 0.0
+    """Chance that a batch element is a TTO pair (0: every pair equally likely). The prior's own
+    renders are near their ground truth and outnumber the TTO pairs, teaching a near identity."""
     validate_every: int = 250
     checkpoint_every: int = 250
     log_every: int = 25
@@ -233,7 +236,9 @@ def cached_pairs(run: Path, data: Path, out: Path, cfg: PairsConfig, *, progress
         x, y = validation_pairs(prior, Path(data), cfg)
         _atomic_save({"inputs": x, "targets": y}, val_path)
     val = load_file(str(val_path))
-    return {"inputs": torch.cat(inputs), "targets": torch.cat(targets), "val_inputs": val["inputs"], "val_targets": val["targets"]}
+    tto_count = sum(len(x) for x in inputs[len(chosen):])
+    return {"inputs": torch.cat(inputs), "targets": torch.cat(targets), "val_inputs": val["inputs"], "val_targets": val["targets"],
+            "tto_pairs": torch.tensor(tto_count)}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -246,9 +251,15 @@ def as_channels(images: torch.Tensor) -> torch.Tensor:
 
 
 def training_batch(pairs: dict[str, torch.Tensor], cfg: DenoiserTrainConfig, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """A random batch of crops ``[B, 4, c, c]`` (inputs, targets), half of them mirrored left-right."""
+    """A random batch of crops ``[B, 4, c, c]`` (inputs, targets), half of them mirrored left-right;
+    with ``cfg.tto_share`` each element is a TTO pair (the last ``pairs["tto_pairs"]``) with that chance."""
     count, height, width = pairs["inputs"].shape[:3]
     picks = torch.randint(0, count, (cfg.batch,), generator=generator)
+    tto = int(pairs.get("tto_pairs", 0))
+    if cfg.tto_share > 0 and 0 < tto < count:
+        from_tto = torch.rand(cfg.batch, generator=generator) < cfg.tto_share
+        picks = torch.where(from_tto, count - tto + torch.randint(0, tto, (cfg.batch,), generator=generator),
+                            torch.randint(0, count - tto, (cfg.batch,), generator=generator))
     x, y = as_channels(pairs["inputs"][picks]), as_channels(pairs["targets"][picks])
     if 0 < cfg.crop < min(height, width):
         top = torch.randint(0, height - cfg.crop + 1, (cfg.batch,), generator=generator)
@@ -347,8 +358,8 @@ def train_denoiser(
     if checkpoint is not None:
         cfg = config.from_dict(DenoiserTrainConfig, checkpoint[2]["train"])
         log.info("resuming %s at step %d", out, checkpoint[2]["step"])
-    if cfg.steps < 1 or cfg.batch < 1 or cfg.crop < 0:
-        raise ValueError("denoiser training needs steps >= 1, batch >= 1 and crop >= 0")
+    if cfg.steps < 1 or cfg.batch < 1 or cfg.crop < 0 or not 0.0 <= cfg.tto_share <= 1.0:
+        raise ValueError("denoiser training needs steps >= 1, batch >= 1, crop >= 0 and a TTO share in [0, 1]")
     torch.manual_seed(cfg.seed)
     pairs = cached_pairs(Path(run), Path(data), out, cfg.pairs, progress=progress)
     log.info("%d training pairs, %d validation pairs of %dx%d", len(pairs["inputs"]), len(pairs["val_inputs"]), pairs["inputs"].shape[2], pairs["inputs"].shape[1])
