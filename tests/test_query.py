@@ -551,6 +551,30 @@ def test_tto_started_from_the_query_guess(query_run, chairs):
     assert all(s["time_to_target_s"] is not None and s["held_out_psnr"] > 0 for s in starts.values())
 
 
+def test_invert_command_starts_from_the_query_guess_with_a_mirrored_view_and_a_refined_pose(query_run, chairs, tmp_path):
+    from PIL import Image
+
+    from model.cli.main import main
+    from model.data.dataset import load_index, load_views
+    from model.prior.outputs import load_nerf
+
+    run, query, _ = query_run
+    object_id = next(e.id for e in load_index(chairs) if e.split == "test")
+    held = load_views(chairs / object_id, "test").subset([0])
+    image, pose = tmp_path / "photo.png", tmp_path / "pose.json"
+    Image.fromarray((held.images[0].numpy() * 255).round().astype(np.uint8), "RGBA").save(image)
+    cam = held.cameras[0]
+    pose.write_text(json.dumps({"frames": [{"transform_matrix": held.c2w[0].tolist(), "fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy}]}))
+    out = tmp_path / "inverted"
+    assert main(["invert", "--run", str(run), "--image", str(image), "--pose", str(pose), "--out", str(out), "--init", "query", "--query", str(query),
+                 "--mirror", "--refine-pose", "--steps", "6", "--rays", "128", "--mesh-resolution", "16"]) == 0
+    _, _, _, _, meta = load_nerf(out / "nerf.safetensors")
+    assert meta["codes"]["init"] == "given" and meta["pose"] == "refined" and meta["tto"]["mirror"] is True
+    refined = np.array(json.loads((out / "pose.json").read_text())["frames"][0]["transform_matrix"])
+    # one pose per input image (the mirrored virtual view is not one), moved a little by the refinement
+    assert refined.shape == (4, 4) and np.abs(refined - held.c2w[0].numpy()).max() < 0.5
+
+
 @pytest.mark.parametrize("head, colour_is_an_entry", [("codebook", True), ("shape-codebook", False)])
 def test_codebook_heads_train_and_answer_with_codebook_entries(trained, chairs, tmp_path, head, colour_is_an_entry):
     from model.prior.query import QueryPipeline
