@@ -28,7 +28,6 @@ import numpy as np
 from safetensors.torch import load_file
 
 from model.bundle.attribution import training_attribution
-from model.prior.colour_measure import rendered_colours
 from model.bundle.manifest import (
     BUNDLE_FORMAT,
     DENOISER_META,
@@ -48,6 +47,7 @@ from model.bundle.onnx_export import (
 )
 from model.nerf import config
 from model.nerf.provenance import source_digest
+from model.prior.colour_measure import rendered_colours
 from model.prior.io import PRIOR_WEIGHTS, Prior, load_prior
 from model.prior.query import QUERY_META, QUERY_WEIGHTS, load_query
 

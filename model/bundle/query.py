@@ -35,7 +35,14 @@ from model.bundle.manifest import (
 from model.bundle.runtime import onnx_session
 from model.prior.colour_words import PromptColour, palette_prompt
 from model.prior.embedders import embed_queries, embed_texts, load_embedder
-from model.prior.query import QUERY_META, QUERY_WEIGHTS, InputSlot, colour_wearers, slot_for, slot_modalities
+from model.prior.query import (
+    QUERY_META,
+    QUERY_WEIGHTS,
+    InputSlot,
+    colour_wearers,
+    slot_for,
+    slot_modalities,
+)
 
 
 class QueryModel:
