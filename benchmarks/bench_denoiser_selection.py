@@ -1,0 +1,124 @@
+"""Denoisers compared on a development set: deformed copies of training meshes.
+
+The choice of the shipped denoiser must not be made on the test split, and the validation chairs
+are in the shipped denoiser's own TTO pairs, so candidates are compared on deformed copies of the
+training meshes (``data/sh3d-chair-augmented``, built with ``hypnerf data import-sh3d --augment``;
+shapes the prior never saw, in no candidate's pairs; the denoiser trained on TTO of deformed
+copies is left out). Candidates missing from ``runs/denoise`` are trained first. Each object is inverted once from its first view (single-view TTO, cached under
+``runs/denoise/dev-tto``); every candidate then denoises renders of that NeRF at every third other
+view (the denoised image) and runs denoise-and-finetune (the finetuned NeRF at the same views).
+Writes ``benchmarks/results/denoiser_selection.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from safetensors.torch import load_file, save_file
+from tqdm import tqdm
+
+from benchmarks.bench_denoise import DATA, RUN, quality
+from benchmarks.common import ROOT, hypnerf, write_result
+
+DEVELOPMENT = ROOT / "data" / "sh3d-chair-augmented"
+TTO_CACHE = ROOT / "runs" / "denoise" / "dev-tto"
+# folder under runs/denoise -> (what it is, the `hypnerf train-denoiser` arguments beside --run, --data and --out)
+CANDIDATES = {
+    "denoiser-tto": ("prior renders + TTO of 12 validation chairs, 3000 steps (shipped)",
+                     "--steps 3000 --instances 0 --tto-objects 12 --tto-views 24"),
+    "denoiser-tto-long": ("the same pairs, 6000 steps", "--steps 6000 --instances 0 --tto-objects 12 --tto-views 24"),
+    "denoiser-tto-share": ("the same pairs, 6000 steps, half of each batch TTO pairs",
+                           "--steps 6000 --instances 0 --tto-objects 12 --tto-views 24 --tto-share 0.5"),
+    "denoiser": ("prior renders alone (the paper's pairs), 3000 steps", "--steps 3000 --instances 0"),
+}
+
+
+def ensure_candidate(name: str) -> Path:
+    """The candidate's folder, trained first (one thread) when it holds no denoiser."""
+    folder = ROOT / "runs" / "denoise" / name
+    if not (folder / "denoiser.json").is_file():
+        hypnerf("train-denoiser", "--run", str(RUN), "--data", str(DATA), "--out", str(folder), *CANDIDATES[name][1].split(),
+                *(["--resume"] if (folder / "checkpoint" / "state.json").is_file() else []))
+    return folder
+
+
+def development_objects(prior, count: int) -> list[str]:
+    """``count`` deformed copies (ids with ``-aug``) the prior never saw, spread over them in id order."""
+    from model.data.dataset import load_index
+    from model.train.denoiser import spread
+
+    seen = {inst["id"] for inst in prior.instances}
+    ids = sorted(e.id for e in load_index(DEVELOPMENT) if e.split == "train" and e.id not in seen and "-aug" in e.id)
+    return [ids[k] for k in spread(2 * count, len(ids))][1::2]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--objects", type=int, default=4, help="deformed copies inverted")
+    parser.add_argument("--candidates", nargs="*", default=list(CANDIDATES), choices=list(CANDIDATES), help="denoisers compared (trained when missing)")
+    args = parser.parse_args(argv)
+    from model.data.dataset import load_views
+    from model.denoise.finetune import DenoiseConfig, denoise_and_finetune, ring_poses
+    from model.denoise.io import load_denoiser
+    from model.denoise.vqvae import denoise_renders
+    from model.eval.field import render_views
+    from model.nerf import config
+    from model.nerf.images import composite_over
+    from model.nerf.rays import Intrinsics
+    from model.nerf.renderer import RenderConfig
+    from model.optimize.tto import TTOConfig, invert
+    from model.prior.codes import generated_grid
+    from model.prior.io import load_prior
+
+    if not (DEVELOPMENT / "index.json").is_file():
+        print(f"{DEVELOPMENT} is missing: `python -m benchmarks.bench_shapes` builds it", file=sys.stderr)
+        return 1
+    denoisers = {name: load_denoiser(ensure_candidate(name))[0] for name in args.candidates}
+    prior = load_prior(RUN)
+    field, camera = prior.net.cfg.field, config.from_dict(Intrinsics, prior.meta["camera"])
+    objects = development_objects(prior, args.objects)
+    TTO_CACHE.mkdir(parents=True, exist_ok=True)
+    rows = {}
+    for object_id in tqdm(objects, desc="development objects", unit="object"):
+        views = load_views(DEVELOPMENT / object_id, None)
+        inputs, evaluation = views.subset([0]), views.subset(list(range(1, len(views.files), 3)))
+        cached = TTO_CACHE / f"{object_id}.safetensors"
+        if not cached.is_file():
+            result = invert(prior.net, prior.scene, inputs.images, inputs.c2w, inputs.cameras, TTOConfig())
+            save_file({k: v.contiguous() for k, v in result.params.items()}, str(cached))
+        params = load_file(str(cached))
+        grid = generated_grid(params, field, prior.scene)
+        rgb, opacity, _, _ = render_views(params, field, evaluation, RenderConfig(), grid, prior.scene)
+        row = {"tto": quality(rgb, evaluation.images, opacity)}
+        for name, denoiser in denoisers.items():
+            rgba = denoise_renders(denoiser, rgb, opacity)
+            finetuned = denoise_and_finetune(params, field, prior.scene, denoiser, ring_poses(), camera, DenoiseConfig(), grid=grid)
+            rgb_after, opacity_after, _, _ = render_views(finetuned.params, field, evaluation, RenderConfig(), finetuned.grid, prior.scene)
+            row[name] = {"denoised_image": quality(composite_over(rgba), evaluation.images, rgba[..., 3]),
+                         "denoise_finetune": quality(rgb_after, evaluation.images, opacity_after)}
+        rows[object_id] = row
+        print(f"  {object_id}: TTO {row['tto']['psnr']:.2f} / {row['tto']['psnr_fg']:.2f} dB; "
+              + "; ".join(f"{n} {row[n]['denoise_finetune']['psnr']:.2f} / {row[n]['denoise_finetune']['psnr_fg']:.2f}" for n in denoisers), flush=True)
+
+    def mean(get) -> dict:
+        return {k: sum(get(r)[k] for r in rows.values()) / len(rows) for k in ("psnr", "psnr_fg", "psnr_fg_gt_mask")}
+
+    summary = {"tto": mean(lambda r: r["tto"]),
+               **{name: {stage: mean(lambda r, n=name, s=stage: r[n][s]) for stage in ("denoised_image", "denoise_finetune")} for name in denoisers}}
+    for name in denoisers:
+        print(f"{name}: denoise-and-finetune {summary[name]['denoise_finetune']['psnr_fg'] - summary['tto']['psnr_fg']:+.2f} dB foreground over TTO")
+    write_result("denoiser_selection", {
+        "command": "python -m benchmarks.bench_denoiser_selection " + " ".join(sys.argv[1:] if argv is None else argv),
+        "data": str(DEVELOPMENT.relative_to(ROOT)), "prior_data": str(DATA.relative_to(ROOT)), "objects": objects,
+        "candidates": {name: CANDIDATES[name][0] for name in denoisers},
+        "train_commands": {name: f"hypnerf train-denoiser --run {RUN.relative_to(ROOT)} --data {DATA.relative_to(ROOT)} --out runs/denoise/{name} "
+                                 + CANDIDATES[name][1] for name in denoisers},
+        "evaluated_at": "every third view after the input (views 1, 4, 7, ...)", "mean": summary, "rows": rows,
+    })
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
