@@ -370,6 +370,8 @@ def test_invert_command_searches_the_pose_then_denoises_and_finetunes(trained, c
     assert main([*command, "--denoise"]) != 0 and "--denoiser" in caplog.text
     assert main([*command, "--init", "query"]) != 0 and "--query" in caplog.text
     assert main([*command, "--image", str(image)]) != 0 and "without --pose give exactly one --image" in caplog.text
+    assert main([*command, "--fov", "200"]) != 0 and "--fov is a horizontal field of view" in caplog.text
+    assert main([*command, "--pose", str(tmp_path / "pose.json"), "--fov", "40"]) != 0 and "the pose file gives the camera" in caplog.text
     assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-steps", "6"]) == 0
     params, grid, _, _, meta = load_nerf(out / "nerf.safetensors")
     assert meta["denoised"] and meta["pose"] == "searched" and grid.fraction > 0

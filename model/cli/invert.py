@@ -134,6 +134,8 @@ def cmd_invert(args) -> int:
         raise ValueError("--init query starts from the query network's guess; give its folder with --query (from `hypnerf train-query`)")
     if args.denoise and not args.denoiser:
         raise ValueError("--denoise needs a denoiser: give its folder with --denoiser (from `hypnerf train-denoiser`)")
+    if args.pose and args.fov is not None:
+        raise ValueError("--fov is for an image without a pose file; the pose file gives the camera (camera_angle_x or fl_x)")
     prior = load_prior(Path(args.run), default_device())
     pose_file = Path(args.pose) if args.pose else None
     images, c2w, cameras = read_inputs(args.image, args.mask, pose_file, search_camera(prior, args.fov) if pose_file is None else None)
@@ -171,7 +173,14 @@ def cmd_invert(args) -> int:
     params, grid = result.params, result.grid
     if denoise is not None:
         log.info("denoise and finetune: rendering fixed views, denoising them, finetuning the NeRF on them")
-        params, grid = denoise(prior, {k: v.to(prior.device) for k, v in params.items()})
+        finetune_bar = tqdm(total=settings.finetune.steps, desc="denoise and finetune", unit="step")
+
+        def finetune_progress(entry: dict) -> None:
+            finetune_bar.update(entry["step"] + 1 - finetune_bar.n)
+            finetune_bar.set_postfix(psnr=f"{entry['psnr']:.2f}")
+
+        params, grid = denoise(prior, {k: v.to(prior.device) for k, v in params.items()}, finetune_progress)
+        finetune_bar.close()
     out = Path(args.out)
     codes = {"shape": result.shape_code.tolist(), "color": result.color_code.tolist(), "init": result.init}
     extra = {"tto": config.to_dict(cfg), "codes": codes, "prior": str(args.run), "wall_s": result.wall_s,
@@ -181,6 +190,7 @@ def cmd_invert(args) -> int:
     paths = write_outputs(out, params, prior.net.cfg.field, grid, prior.scene, cameras[0], extra=extra, mesh_resolution=args.mesh_resolution)
     (out / "codes.json").write_text(json.dumps(codes, indent=2))
     (out / "history.json").write_text(json.dumps(result.history, indent=2))
+    # result.c2w lists the input views first (mirrored virtual views, if any, follow): one frame per input image
     (out / "pose.json").write_text(json.dumps(pose_record(result.c2w, cameras), indent=2))
     final = result.history[-1]
     print(f"inverted in {result.wall_s:.1f} s from {result.init} (pose {extra['pose']}): training-view PSNR {final['psnr']:.2f} dB"

@@ -187,17 +187,18 @@ def denoise_and_finetune(
 
 
 def denoise_and_finetune_prior(folder: Path, cfg: DenoiseConfig | None = None, poses: torch.Tensor | None = None,
-                               ) -> Callable[[Prior, FieldParams], tuple[FieldParams, OccupancyGrid]]:
-    """``(prior, params) -> (params, grid)``: denoise-and-finetune of a NeRF of ``prior`` (e.g. a TTO
-    result's) with the denoiser in ``folder``, at ``poses`` (default ``ring_poses()``) seen through
-    the prior's category camera; the denoiser is loaded once."""
+                               ) -> Callable[..., tuple[FieldParams, OccupancyGrid]]:
+    """``(prior, params, progress=None) -> (params, grid)``: denoise-and-finetune of a NeRF of
+    ``prior`` (e.g. a TTO result's) with the denoiser in ``folder``, at ``poses`` (default
+    ``ring_poses()``) seen through the prior's category camera; the denoiser is loaded once.
+    ``progress`` is :func:`denoise_and_finetune`'s."""
     denoiser, _ = load_denoiser(folder)
     cfg = cfg or DenoiseConfig()
     poses = ring_poses() if poses is None else poses
 
-    def run(prior: Prior, params: FieldParams) -> tuple[FieldParams, OccupancyGrid]:
+    def run(prior: Prior, params: FieldParams, progress: Callable[[dict], None] | None = None) -> tuple[FieldParams, OccupancyGrid]:
         camera = config.from_dict(Intrinsics, prior.meta["camera"])
-        result = denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser.to(prior.device), poses, camera, cfg)
+        result = denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser.to(prior.device), poses, camera, cfg, progress=progress)
         return result.params, result.grid
 
     return run
