@@ -106,7 +106,7 @@ class Bench:
         reference = trimesh.load(views.mesh_path, force="mesh")
         return mesh_chamfer(mesh, reference, unit=self.prior.scene.longest_side), mesh
 
-    def denoise_finetune(self, params, grid):
+    def denoise_finetune(self, params, grid, inputs=None):
         from model.denoise.finetune import (
             DenoiseConfig,
             denoise_and_finetune,
@@ -116,7 +116,7 @@ class Bench:
         from model.nerf.rays import Intrinsics
 
         camera = config.from_dict(Intrinsics, self.prior.meta["camera"])
-        return denoise_and_finetune(params, self.field, self.prior.scene, self.denoiser, ring_poses(), camera, DenoiseConfig(), grid=grid)
+        return denoise_and_finetune(params, self.field, self.prior.scene, self.denoiser, ring_poses(), camera, DenoiseConfig(), grid=grid, inputs=inputs)
 
 
 def held_out_training_views(bench: Bench, count: int) -> dict:
@@ -204,7 +204,7 @@ def test_objects(bench: Bench, count: int, picture: list) -> dict:
         rgb, opacity = bench.renders(tto.params, tto.grid, evaluation)
         row["tto_raw"], row["tto_denoised_image"], denoised = bench.raw_and_denoised(rgb, opacity, evaluation)
         row["tto_chamfer"], _ = bench.chamfer(tto.params, tto.grid, evaluation)
-        result = bench.denoise_finetune(tto.params, tto.grid)
+        result = bench.denoise_finetune(tto.params, tto.grid, (inputs.images, tto.c2w, inputs.cameras))
         rgb_after, opacity_after = bench.renders(result.params, result.grid, evaluation)
         row["tto_denoise_finetune"] = quality(rgb_after, evaluation.images, opacity_after)
         row["tto_denoise_finetune_chamfer"], _ = bench.chamfer(result.params, result.grid, evaluation)

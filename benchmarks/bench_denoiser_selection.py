@@ -94,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
         row = {"tto": quality(rgb, evaluation.images, opacity)}
         for name, denoiser in denoisers.items():
             rgba = denoise_renders(denoiser, rgb, opacity)
-            finetuned = denoise_and_finetune(params, field, prior.scene, denoiser, ring_poses(), camera, DenoiseConfig(), grid=grid)
+            finetuned = denoise_and_finetune(params, field, prior.scene, denoiser, ring_poses(), camera, DenoiseConfig(), grid=grid,
+                                             inputs=(inputs.images, inputs.c2w, inputs.cameras))
             rgb_after, opacity_after, _, _ = render_views(finetuned.params, field, evaluation, RenderConfig(), finetuned.grid, prior.scene)
             row[name] = {"denoised_image": quality(composite_over(rgba), evaluation.images, rgba[..., 3]),
                          "denoise_finetune": quality(rgb_after, evaluation.images, opacity_after)}

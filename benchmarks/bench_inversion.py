@@ -27,6 +27,8 @@ DENOISER = ROOT / "runs" / "denoise" / "denoiser"
 DENOISER_VARIANTS = {
     "tto_denoise_val_tto": ("denoiser-tto", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
                             "--out runs/denoise/denoiser-tto --steps 3000 --instances 0 --tto-objects 12 --tto-views 24"),
+    "tto_denoise_inputs": ("denoiser-tto", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
+                           "--out runs/denoise/denoiser-tto --steps 3000 --instances 0 --tto-objects 12 --tto-views 24"),
     "tto_denoise_aug_tto": ("denoiser-tto-aug", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
                             "--out runs/denoise/denoiser-tto-aug --steps 3000 --instances 0 --tto-objects 24 --tto-views 24 "
                             "--tto-data data/sh3d-chair-augmented"),
@@ -67,6 +69,7 @@ def _merge_denoise_row(report: dict, row: str, denoiser: Path, side: Path) -> No
     report[f"tto_denoise_command{suffix}"] = extra["command"]
     report[f"tto_reproduced_psnr_fg{suffix}"] = extra["rows"]["tto"]["psnr_fg"]
     report[f"tto_denoise_s{suffix}"] = extra.get("tto_denoise_s")
+    report[f"denoise{suffix}"] = extra.get("denoise")  # the denoise-and-finetune settings (None: made before they were recorded)
     print(f"added {row} to the generalisation table (tto reproduced within {drift:.3f} dB)")
 
 

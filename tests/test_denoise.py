@@ -355,6 +355,32 @@ def test_denoise_and_finetune_end_to_end(instance, denoiser_run):
         ring_poses(elevations=(90.0,))
 
 
+def test_input_views_make_up_their_share_of_the_finetune_views(instance, denoiser_run):
+    from model.denoise.finetune import with_inputs
+
+    prior, params, grid, views = instance
+    denoised, poses = torch.rand(16, 8, 8, 4), ring_poses()
+    photo, photo_pose = torch.rand(1, 8, 8, 4), poses[:1] * 1.0
+    cameras = [views.camera] * 16
+    assert with_inputs(denoised, poses, cameras, None, 0.5)[0] is denoised
+    assert with_inputs(denoised, poses, cameras, (photo, photo_pose, [views.camera]), 0.0)[0] is denoised
+    images, c2w, cams = with_inputs(denoised, poses, cameras, (photo, photo_pose, [views.camera]), 0.5)
+    assert images.shape[0] == c2w.shape[0] == len(cams) == 32 and torch.equal(images[16:], photo.expand(16, -1, -1, -1))
+    # two input views share the copies; a tiny share still keeps one copy of each
+    two = (photo.repeat(2, 1, 1, 1), photo_pose.repeat(2, 1, 1), [views.camera] * 2)
+    assert with_inputs(denoised, poses, cameras, two, 0.5)[0].shape[0] == 32
+    assert with_inputs(denoised, poses, cameras, two, 0.01)[0].shape[0] == 18
+    with pytest.raises(ValueError, match="as many poses and cameras"):
+        with_inputs(denoised, poses, cameras, (photo, photo_pose.repeat(2, 1, 1), [views.camera]), 0.5)
+    with pytest.raises(ValueError, match="input_share"):
+        DenoiseConfig(input_share=1.0)
+    # end to end: the NeRF's own training view joins the denoised ones
+    denoiser, _ = load_denoiser(denoiser_run[0])
+    result = denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser, ring_poses(elevations=(30.0,), per_ring=2), views.camera,
+                                  DenoiseConfig(finetune=tiny_finetune(5)), grid=grid, inputs=(views.images[:1], views.c2w[:1], views.cameras[:1]))
+    assert all(torch.isfinite(v).all() for v in result.params.values()) and result.grid.fraction > 0
+
+
 def test_invert_command_searches_the_pose_then_denoises_and_finetunes(trained, chairs, denoiser_run, tmp_path, caplog):
     from model.prior.outputs import load_nerf
     from PIL import Image

@@ -179,7 +179,7 @@ def cmd_invert(args) -> int:
             finetune_bar.update(entry["step"] + 1 - finetune_bar.n)
             finetune_bar.set_postfix(psnr=f"{entry['psnr']:.2f}")
 
-        params, grid = denoise(prior, {k: v.to(prior.device) for k, v in params.items()}, finetune_progress)
+        params, grid = denoise(prior, {k: v.to(prior.device) for k, v in params.items()}, (images, result.c2w[: len(images)], cameras), finetune_progress)
         finetune_bar.close()
     out = Path(args.out)
     codes = {"shape": result.shape_code.tolist(), "color": result.color_code.tolist(), "init": result.init}

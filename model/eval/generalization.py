@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from dataclasses import field as dataclass_field
 from pathlib import Path
 
@@ -32,6 +32,7 @@ from scipy import linalg
 from tqdm import tqdm
 
 from model.data.dataset import Views, load_index, load_views
+from model.denoise.finetune import DenoiseConfig
 from model.eval.field import render_views
 from model.eval.metrics import image_quality, ssim
 from model.eval.prior import save_grid
@@ -160,7 +161,7 @@ def generalization(run: Path, data: Path, cfg: GeneralizationConfig, *, denoiser
         made["mean_code"] = (mean_params, mean_grid)
         if denoise is not None and "tto_denoise" in rows:
             start = time.perf_counter()
-            made["tto_denoise"] = denoise(prior, result.params)
+            made["tto_denoise"] = denoise(prior, result.params, (inputs.images, result.c2w[: len(inputs.files)], inputs.cameras))
             record["tto_denoise_s"] = time.perf_counter() - start
         if "single_view_fit" in rows:
             start = time.perf_counter()
@@ -211,6 +212,7 @@ def generalization(run: Path, data: Path, cfg: GeneralizationConfig, *, denoiser
         "fit_s": float(np.mean([r["fit_s"] for r in per_object])) if "single_view_fit" in rows else None,
         "tto_denoise_s": float(np.mean([r["tto_denoise_s"] for r in per_object])) if "tto_denoise" in rows else None,
         "config": config.to_dict(cfg),
+        "denoise": config.to_dict(DenoiseConfig()) if "tto_denoise" in rows else None,
         "per_object": per_object,
     }
     if out is not None:
@@ -222,7 +224,8 @@ def generalization(run: Path, data: Path, cfg: GeneralizationConfig, *, denoiser
 
 
 def _load_denoiser(path: Path):
-    """``(prior, params) -> (params, grid)``: denoise-and-finetune with the denoiser at ``path``."""
+    """``(prior, params, inputs) -> (params, grid)``: denoise-and-finetune (default
+    ``DenoiseConfig``, recorded in the report) with the denoiser at ``path``."""
     from model.denoise import denoise_and_finetune_prior
 
-    return denoise_and_finetune_prior(path)
+    return denoise_and_finetune_prior(path, DenoiseConfig())

@@ -24,7 +24,7 @@ class InversionOptions(BaseModel):
     rays_per_step: int | None = Field(None, ge=64, le=65536, description="rays sampled from the images per step; default 2048")
     init: Literal["nearest", "mean"] = Field("nearest", description="start from the training instance that looks closest, or the mean code")
     seed: int = Field(0, ge=0, le=2**31 - 1)
-    denoise: bool = Field(False, description="after the codes, render fixed views, denoise them and finetune on them (needs a bundle with a denoiser)")
+    denoise: bool = Field(False, description="after the codes, render fixed views, denoise them and finetune on them and the input images (needs a bundle with a denoiser)")
     denoise_steps: int | None = Field(None, ge=1, description="finetune steps on the denoised views; default 300 (counted in the same cap)")
     webhook_url: str | None = Field(None, max_length=2048, description="POSTed the job (HMAC-signed) when it finishes; its host must be in HYPNERF_WEBHOOK_ALLOW")
 
