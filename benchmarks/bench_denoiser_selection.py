@@ -6,7 +6,9 @@ training meshes (``data/sh3d-chair-augmented``, built with ``hypnerf data import
 shapes the prior never saw, in no candidate's pairs; the denoiser trained on TTO of deformed
 copies is left out). Candidates missing from ``runs/denoise`` are trained first. Each object is inverted once from its first view (single-view TTO, cached under
 ``runs/denoise/dev-tto``); every candidate then denoises renders of that NeRF at every third other
-view (the denoised image) and runs denoise-and-finetune (the finetuned NeRF at the same views).
+view (the denoised image) and runs denoise-and-finetune (the finetuned NeRF at the same views,
+the input photo among the finetune views at the default share); the shipped denoiser also at
+other shares, and a control finetuned on the input photo alone.
 Writes ``benchmarks/results/denoiser_selection.json``.
 """
 
@@ -44,6 +46,12 @@ def ensure_candidate(name: str) -> Path:
     return folder
 
 
+SHIPPED = "denoiser-tto"
+# further shares of the input photo among the finetune views, tried with the shipped denoiser
+# (candidates use the default share, DenoiseConfig.input_share)
+INPUT_SHARES = (0.0, 0.2)
+
+
 def development_objects(prior, count: int) -> list[str]:
     """``count`` deformed copies (ids with ``-aug``) the prior never saw, spread over them in id order."""
     from model.data.dataset import load_index
@@ -60,7 +68,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--candidates", nargs="*", default=list(CANDIDATES), choices=list(CANDIDATES), help="denoisers compared (trained when missing)")
     args = parser.parse_args(argv)
     from model.data.dataset import load_views
-    from model.denoise.finetune import DenoiseConfig, denoise_and_finetune, ring_poses
+    from model.denoise.finetune import (
+        DenoiseConfig,
+        denoise_and_finetune,
+        finetune_on_views,
+        ring_poses,
+    )
     from model.denoise.io import load_denoiser
     from model.denoise.vqvae import denoise_renders
     from model.eval.field import render_views
@@ -92,13 +105,24 @@ def main(argv: list[str] | None = None) -> int:
         grid = generated_grid(params, field, prior.scene)
         rgb, opacity, _, _ = render_views(params, field, evaluation, RenderConfig(), grid, prior.scene)
         row = {"tto": quality(rgb, evaluation.images, opacity)}
+        photo = (inputs.images, inputs.c2w, inputs.cameras)
+
+        def scored(tuned, tuned_grid, evaluation=evaluation) -> dict:
+            rgb_after, opacity_after, _, _ = render_views(tuned, field, evaluation, RenderConfig(), tuned_grid, prior.scene)
+            return quality(rgb_after, evaluation.images, opacity_after)
+
         for name, denoiser in denoisers.items():
             rgba = denoise_renders(denoiser, rgb, opacity)
-            finetuned = denoise_and_finetune(params, field, prior.scene, denoiser, ring_poses(), camera, DenoiseConfig(), grid=grid,
-                                             inputs=(inputs.images, inputs.c2w, inputs.cameras))
-            rgb_after, opacity_after, _, _ = render_views(finetuned.params, field, evaluation, RenderConfig(), finetuned.grid, prior.scene)
+            shares = (DenoiseConfig().input_share, *INPUT_SHARES) if name == SHIPPED else (DenoiseConfig().input_share,)
+            results = {share: denoise_and_finetune(params, field, prior.scene, denoiser, ring_poses(), camera, DenoiseConfig(input_share=share),
+                                                   grid=grid, inputs=photo) for share in shares}
             row[name] = {"denoised_image": quality(composite_over(rgba), evaluation.images, rgba[..., 3]),
-                         "denoise_finetune": quality(rgb_after, evaluation.images, opacity_after)}
+                         "denoise_finetune": scored(results[shares[0]].params, results[shares[0]].grid)}
+            for share in shares[1:]:
+                row[f"{name} input share {share:g}"] = {"denoise_finetune": scored(results[share].params, results[share].grid)}
+        # the control: the same finetune on the input photo alone, no denoised views
+        alone = finetune_on_views(params, field, prior.scene, *photo, DenoiseConfig().finetune, grid=grid)
+        row["input photo alone"] = {"denoise_finetune": scored(alone, generated_grid(alone, field, prior.scene))}
         rows[object_id] = row
         print(f"  {object_id}: TTO {row['tto']['psnr']:.2f} / {row['tto']['psnr_fg']:.2f} dB; "
               + "; ".join(f"{n} {row[n]['denoise_finetune']['psnr']:.2f} / {row[n]['denoise_finetune']['psnr_fg']:.2f}" for n in denoisers), flush=True)
@@ -106,14 +130,19 @@ def main(argv: list[str] | None = None) -> int:
     def mean(get) -> dict:
         return {k: sum(get(r)[k] for r in rows.values()) / len(rows) for k in ("psnr", "psnr_fg", "psnr_fg_gt_mask")}
 
+    first = next(iter(rows.values()))
     summary = {"tto": mean(lambda r: r["tto"]),
-               **{name: {stage: mean(lambda r, n=name, s=stage: r[n][s]) for stage in ("denoised_image", "denoise_finetune")} for name in denoisers}}
-    for name in denoisers:
+               **{name: {stage: mean(lambda r, n=name, s=stage: r[n][s]) for stage in first[name]} for name in first if name != "tto"}}
+    for name in (n for n in summary if n != "tto"):
         print(f"{name}: denoise-and-finetune {summary[name]['denoise_finetune']['psnr_fg'] - summary['tto']['psnr_fg']:+.2f} dB foreground over TTO")
     write_result("denoiser_selection", {
         "command": "python -m benchmarks.bench_denoiser_selection " + " ".join(sys.argv[1:] if argv is None else argv),
         "data": str(DEVELOPMENT.relative_to(ROOT)), "prior_data": str(DATA.relative_to(ROOT)), "objects": objects,
         "candidates": {name: CANDIDATES[name][0] for name in denoisers},
+        "input_share": DenoiseConfig().input_share,
+        "variants": {**{f"{SHIPPED} input share {share:g}": f"the shipped denoiser, the input photo {share:.0%} of the finetune views"
+                        for share in INPUT_SHARES if SHIPPED in denoisers},
+                     "input photo alone": "the same finetune on the input photo alone (no denoised views): the control"},
         "train_commands": {name: f"hypnerf train-denoiser --run {RUN.relative_to(ROOT)} --data {DATA.relative_to(ROOT)} --out runs/denoise/{name} "
                                  + CANDIDATES[name][1] for name in denoisers},
         "evaluated_at": "every third view after the input (views 1, 4, 7, ...)", "mean": summary, "rows": rows,

@@ -619,12 +619,18 @@ def denoiser_selection_section(data: dict) -> list[str]:
         result = data["mean"][name]
         gains[name] = result["denoise_finetune"]["psnr_fg"] - tto["psnr_fg"]
         rows.append([f"{name}: {label}", *cells(result["denoised_image"]), *cells(result["denoise_finetune"]), f"{gains[name]:+.2f}"])
+    for name, label in data.get("variants", {}).items():
+        if name in data["mean"]:
+            result = data["mean"][name]["denoise_finetune"]
+            gains[name] = result["psnr_fg"] - tto["psnr_fg"]
+            rows.append([f"{name}: {label}", "", *cells(result), f"{gains[name]:+.2f}"])
     best = max(gains, key=gains.get)
     return ["## Choosing the denoiser (development set, never the test split)", "",
             f"{len(data['objects'])} deformed copies of training meshes (`{data['data']}`; shapes the prior never saw, in none of these "
             f"denoisers' pairs), one view each, scored at {data['evaluated_at']}; full / foreground PSNR in dB. "
             "The denoised-images column scores the denoiser's output at those views; the last two columns the NeRF finetuned on "
-            "denoised views at fixed ring poses.", "",
+            "denoised views at fixed ring poses"
+            + (f" with the input photo repeated to {data['input_share']:.0%} of the finetune views." if data.get("input_share") else "."), "",
             *_table(["denoiser", "denoised images", "denoise-and-finetune", "fg gain over TTO"], rows), "",
             f"Best foreground gain: {best} ({gains[best]:+.2f} dB, target +0.8: {'met' if gains[best] >= 0.8 else 'not met'}). "
             + (f"Selection: {data['selection_note']}. " if data.get("selection_note") else "")
