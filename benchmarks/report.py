@@ -588,6 +588,8 @@ def denoise_section(data: dict) -> list[str]:
         for after in (k for k in test if k.startswith(name + "_") and k != raw and isinstance(test[k], dict)):
             rows.append([f"unseen chairs, {name}: {after.removeprefix(name + '_').replace('_', ' ')}", cells(test[raw]), cells(test[after])])
     gain = test["tto_denoise_finetune"]["psnr_fg"] - test["tto_raw"]["psnr_fg"]
+    rows += [["blank white image (floor): held-out views of training instances", f"{held['raw']['floor_psnr']:.2f} / {held['raw']['floor_psnr_fg']:.2f}", ""],
+             ["blank white image (floor): unseen chairs", f"{test['tto_raw']['floor_psnr']:.2f} / {test['tto_raw']['floor_psnr_fg']:.2f}", ""]]
     return ["## Denoise and finetune (paper section 3.1, step 2)", "",
             f"VQ-VAE-2-style denoiser, {data['denoiser']['parameters']} parameters, trained {data['training']['steps']} steps "
             f"({data['training']['wall_s']:.0f} s, {data['training']['threads']} thread) on {data['training']['pairs']} (render, ground truth) pairs: "
