@@ -570,7 +570,9 @@ def test_invert_command_starts_from_the_query_guess_with_a_mirrored_view_and_a_r
                  "--mirror", "--refine-pose", "--steps", "6", "--rays", "128", "--mesh-resolution", "16"]) == 0
     _, _, _, _, meta = load_nerf(out / "nerf.safetensors")
     assert meta["codes"]["init"] == "given" and meta["pose"] == "refined" and meta["tto"]["mirror"] is True
-    refined = np.array(json.loads((out / "pose.json").read_text())["frames"][0]["transform_matrix"])
+    frames = json.loads((out / "pose.json").read_text())["frames"]
+    assert len(frames) == 1
+    refined = np.array(frames[0]["transform_matrix"])
     # one pose per input image (the mirrored virtual view is not one), moved a little by the refinement
     assert refined.shape == (4, 4) and np.abs(refined - held.c2w[0].numpy()).max() < 0.5
 

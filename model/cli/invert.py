@@ -116,7 +116,7 @@ def search_camera(prior, fov: float | None):
 def pose_record(c2w, cameras) -> dict:
     """transforms.json-style record of the poses TTO ended with (refined or found)."""
     return {"frames": [{"transform_matrix": pose.tolist(), "fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy}
-                       for pose, cam in zip(c2w.cpu(), cameras)]}
+                       for pose, cam in zip(c2w.cpu(), cameras, strict=True)]}
 
 
 def cmd_invert(args) -> int:
@@ -179,7 +179,7 @@ def cmd_invert(args) -> int:
             finetune_bar.update(entry["step"] + 1 - finetune_bar.n)
             finetune_bar.set_postfix(psnr=f"{entry['psnr']:.2f}")
 
-        params, grid = denoise(prior, {k: v.to(prior.device) for k, v in params.items()}, (images, result.c2w[: len(images)], cameras), finetune_progress)
+        params, grid = denoise(prior, {k: v.to(prior.device) for k, v in params.items()}, (images, result.c2w, cameras), finetune_progress)
         finetune_bar.close()
     out = Path(args.out)
     codes = {"shape": result.shape_code.tolist(), "color": result.color_code.tolist(), "init": result.init}
@@ -190,7 +190,6 @@ def cmd_invert(args) -> int:
     paths = write_outputs(out, params, prior.net.cfg.field, grid, prior.scene, cameras[0], extra=extra, mesh_resolution=args.mesh_resolution)
     (out / "codes.json").write_text(json.dumps(codes, indent=2))
     (out / "history.json").write_text(json.dumps(result.history, indent=2))
-    # result.c2w lists the input views first (mirrored virtual views, if any, follow): one frame per input image
     (out / "pose.json").write_text(json.dumps(pose_record(result.c2w, cameras), indent=2))
     final = result.history[-1]
     print(f"inverted in {result.wall_s:.1f} s from {result.init} (pose {extra['pose']}): training-view PSNR {final['psnr']:.2f} dB"

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import csv
 import logging
-import os
 import re
 import shutil
 import subprocess
@@ -41,6 +40,7 @@ from model.data.build import SourceObject, slug
 from model.data.colours import default_caption
 from model.data.imports import load_upright
 from model.data.meshes import RenderMesh
+from model.nerf.cache import cache_folder
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +74,7 @@ class CategoryRow:
 
 def cache_dir() -> Path:
     """Where the unpacked package and extracted models live."""
-    root = os.environ.get("HYPNERF_CACHE")
-    return (Path(root) if root else Path.home() / ".cache" / "hypnerf") / "sweethome3d"
+    return cache_folder("sweethome3d")
 
 
 def _has_libraries(folder: Path) -> bool:

@@ -161,7 +161,7 @@ def generalization(run: Path, data: Path, cfg: GeneralizationConfig, *, denoiser
         made["mean_code"] = (mean_params, mean_grid)
         if denoise is not None and "tto_denoise" in rows:
             start = time.perf_counter()
-            made["tto_denoise"] = denoise(prior, result.params, (inputs.images, result.c2w[: len(inputs.files)], inputs.cameras))
+            made["tto_denoise"] = denoise(prior, result.params, (inputs.images, result.c2w, inputs.cameras))
             record["tto_denoise_s"] = time.perf_counter() - start
         if "single_view_fit" in rows:
             start = time.perf_counter()

@@ -106,7 +106,8 @@ class TTOResult:
     init: str
     """Where the codes started: ``given``, ``nearest:<instance>`` or ``mean``."""
     c2w: torch.Tensor
-    """``[V, 4, 4]`` the poses used at the end (refined, or found by the search)."""
+    """``[V, 4, 4]`` the input views' poses used at the end (refined, or found by the search; not
+    the mirrored virtual views')."""
     wall_s: float
 
 
@@ -316,6 +317,7 @@ def invert(
     device = next(net.parameters()).device
     field_cfg = net.cfg.field
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
+    input_views = images.shape[0]
     if cfg.mirror and c2w is not None:
         images, c2w, cameras = with_mirrored_views(images, c2w, cameras, scene)
     pixels = PixelBank(images, cameras, device)
@@ -409,7 +411,7 @@ def invert(
                                           lambda s, l, m: report(cfg.steps + s, "finetune", l, m))
     return TTOResult(
         shape_code=shape.detach().cpu(), color_code=color.detach().cpu(), params={k: v.detach().cpu() for k, v in params.items()},
-        grid=grid.to("cpu"), history=history, stopped=stopped, init=started, c2w=final_poses.cpu(), wall_s=time.perf_counter() - start,
+        grid=grid.to("cpu"), history=history, stopped=stopped, init=started, c2w=final_poses[:input_views].cpu(), wall_s=time.perf_counter() - start,
     )
 
 

@@ -28,6 +28,7 @@ from tqdm import tqdm
 from model.data.cameras import evaluation_poses
 from model.data.colours import PALETTE
 from model.data.raycast import AMBIENT, LIGHTS, linear_to_srgb, srgb_to_linear
+from model.nerf.cache import cache_folder
 from model.nerf.rays import Intrinsics
 from model.nerf.renderer import RenderConfig, render_image
 from model.prior.codes import generated_grid
@@ -99,9 +100,7 @@ def _weights_digest(prior) -> str:
 
 
 def _cache_file(prior, resolution: int) -> Path:
-    root = os.environ.get("HYPNERF_CACHE")
-    folder = (Path(root) if root else Path.home() / ".cache" / "hypnerf") / "rendered-colours"
-    return folder / f"{_weights_digest(prior)}-{resolution}-v{MEASURE_VERSION}.json"
+    return cache_folder("rendered-colours") / f"{_weights_digest(prior)}-{resolution}-v{MEASURE_VERSION}.json"
 
 
 def rendered_colours(prior, resolution: int = RENDERED_COLOUR_RESOLUTION, cache: bool = True) -> list[dict[str, float]]:

@@ -16,21 +16,20 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 from pathlib import Path
 
 import torch
 from safetensors.torch import load_file, save_file
 
 from model.data.dataset import TRANSFORMS_FILE, load_views
+from model.nerf.cache import cache_folder
 from model.prior.embedders import embed_images
 
 log = logging.getLogger(__name__)
 
 
 def cache_root() -> Path:
-    root = os.environ.get("HYPNERF_CACHE")
-    return (Path(root) if root else Path.home() / ".cache" / "hypnerf") / "embeddings"
+    return cache_folder("embeddings")
 
 
 def cache_key(embedder, folder: Path, split: str, views: list[int]) -> str:

@@ -131,7 +131,7 @@ def _result(job: Job, context: WorkerContext, lease: Lease) -> tuple[str, dict |
     if denoise is not None:
         progress.offset = progress.total - denoise.finetune.steps
         tuned = denoise_and_finetune(params, bundle.field, bundle.scene, context.denoiser(), ring_poses(), bundle.camera, denoise, grid=grid,
-                                     inputs=(images, inverted.c2w[: len(images)], cameras), progress=lambda report: progress(report, "denoise"))
+                                     inputs=(images, inverted.c2w, cameras), progress=lambda report: progress(report, "denoise"))
         if lease.should_stop():
             return CANCELED, None, None
         params, grid, finetuned = tuned.params, tuned.grid, True
