@@ -41,9 +41,11 @@ def main(argv: list[str] | None = None) -> int:
     if not (RESULTS / "text_to_nerf.json").is_file():
         hypnerf("eval", "text-to-nerf", "--run", str(PRIOR), "--data", str(DATA), "--query", str(QUERY), "--prompts", str(args.prompts),
                 "--json", str(RESULTS / "text_to_nerf.json"), "--grid", str(RESULTS / "text_to_nerf.png"))
-    if not (RESULTS / "text_to_nerf_seed1.json").is_file():  # a second draw of held-out prompts, a check on choices made on the first
-        hypnerf("eval", "text-to-nerf", "--run", str(PRIOR), "--data", str(DATA), "--query", str(QUERY), "--prompts", str(args.prompts),
-                "--seed", "1", "--json", str(RESULTS / "text_to_nerf_seed1.json"), "--grid", str(ROOT / "runs" / "query" / "text_to_nerf_seed1.png"))
+    for seed in (1, 2):  # further draws of held-out prompts, a check on choices made on the first
+        if not (RESULTS / f"text_to_nerf_seed{seed}.json").is_file():
+            hypnerf("eval", "text-to-nerf", "--run", str(PRIOR), "--data", str(DATA), "--query", str(QUERY), "--prompts", str(args.prompts),
+                    "--seed", str(seed), "--json", str(RESULTS / f"text_to_nerf_seed{seed}.json"),
+                    "--grid", str(ROOT / "runs" / "query" / f"text_to_nerf_seed{seed}.png"))
     if not (RESULTS / "text_to_nerf_no_colour_words.json").is_file():  # the same prompts embedded as they are
         hypnerf("eval", "text-to-nerf", "--run", str(PRIOR), "--data", str(DATA), "--query", str(QUERY), "--prompts", str(args.prompts),
                 "--no-colour-words", "--json", str(RESULTS / "text_to_nerf_no_colour_words.json"),

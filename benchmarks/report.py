@@ -27,7 +27,7 @@ COMMANDS = {
     "denoise": "OMP_NUM_THREADS=1 python -m benchmarks.bench_denoise  (trains runs/denoise/denoiser-tto first when it is missing)",
     "denoiser_selection": "python -m benchmarks.bench_denoiser_selection  (trains the candidates that are missing first)",
     "retrieval": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf train-query, then hypnerf eval retrieval --views 2)",
-    "text_to_nerf": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf eval text-to-nerf --prompts 80, again with --seed 1, and with --no-colour-words)",
+    "text_to_nerf": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf eval text-to-nerf --prompts 80, again with --seed 1 and --seed 2, and with --no-colour-words)",
     "sampling": "hypnerf eval sampling --run runs/prior-cpu --samples 12 --json benchmarks/results/sampling.json",
     "service": "python -m benchmarks.bench_service --bundle bundles/chair-demo --inversion-requests 2",
     "render": "python -m benchmarks.bench_render  (runs: hypnerf bench render --fit runs/bench-fit/masks/<first chair> --json benchmarks/results/render.json)",
@@ -534,7 +534,8 @@ def text_to_nerf_section(data: dict) -> list[str]:
     known = data.get("synonyms_the_lexicon_knows")
     lines = ["## Text-to-NeRF", "", f"Colour: {data['colour_metric']}. Type: {data['type_metric']}.", "",
              "Prompts are read with the colour lexicon (`model.prior.colour_words`: a colour name that is not a palette colour is "
-             "replaced by the palette colour nearest it in CIELAB, and the colour the prompt names restricts the snapped colour code to "
+             "replaced by the palette colour nearest it in CIELAB, or for a word the XKCD survey and CSS do not name, by the palette colour "
+             "its WordNet colour sense names; the colour the prompt names restricts the snapped colour code to "
              "instances wearing it); the last two columns embed the same prompts as they are"
              + (" (`text_to_nerf_no_colour_words.json`)." if plain else " (not measured)."), "",
              *_table(["prompts", "count", "colour %", "type %", "colour %, prompts as they are", "type %, prompts as they are"], rows), "",
@@ -544,11 +545,19 @@ def text_to_nerf_section(data: dict) -> list[str]:
              f"Target >= 90%: colour {'met' if data['colour_accuracy'] >= 0.9 else 'not met'}, type {'met' if data['type_accuracy'] >= 0.9 else 'not met'}. "
              + (f"Selection: {data['selection_note']}. " if data.get("selection_note") else "") +
              "Grid: `benchmarks/results/text_to_nerf.png`.", ""]
-    second, before = _load("text_to_nerf_seed1"), {name: _load(f"{name}_caption_wearers") for name in ("text_to_nerf", "text_to_nerf_seed1")}
-    if second:
-        lines += [f"A second draw of {second['prompts']} held-out prompts (seed 1, `text_to_nerf_seed1.json`): colour "
-                  f"{100 * second['colour_accuracy']:.1f}%, type {100 * second['type_accuracy']:.1f}% (palette words "
-                  f"{100 * second['palette_colour_words']['colour_accuracy']:.1f}%, held-out synonyms {100 * second['colour_synonyms']['colour_accuracy']:.1f}%).", ""]
+    before = {name: _load(f"{name}_caption_wearers") for name in ("text_to_nerf", "text_to_nerf_seed1")}
+    for seed, ordinal in ((1, "second"), (2, "third")):
+        draw = _load(f"text_to_nerf_seed{seed}")
+        if draw:
+            lines += [f"A {ordinal} draw of {draw['prompts']} held-out prompts (seed {seed}, `text_to_nerf_seed{seed}.json`): colour "
+                      f"{100 * draw['colour_accuracy']:.1f}%, type {100 * draw['type_accuracy']:.1f}% (palette words "
+                      f"{100 * draw['palette_colour_words']['colour_accuracy']:.1f}%, held-out synonyms {100 * draw['colour_synonyms']['colour_accuracy']:.1f}%).", ""]
+    survey = {name: _load(f"{name}_survey_lexicon") for name in ("text_to_nerf", "text_to_nerf_seed1")}
+    if all(survey.values()):
+        lines += ["The lexicon without WordNet (survey and CSS names only; `*_survey_lexicon.json`, "
+                  f"{survey['text_to_nerf'].get('measured_at', 'an earlier commit')}, same network and prompts): colour "
+                  f"{100 * survey['text_to_nerf']['colour_accuracy']:.1f}% on the first draw and {100 * survey['text_to_nerf_seed1']['colour_accuracy']:.1f}% "
+                  "on the second.", ""]
     if all(before.values()):
         lines += ["Colour wearers read from captions alone (the snapped colour code the nearest among every instance captioned with the colour; "
                   f"`*_caption_wearers.json`, {before['text_to_nerf'].get('measured_at', 'an earlier commit')}): colour "

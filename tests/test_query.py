@@ -387,7 +387,10 @@ def test_vocabulary_captions_name_the_colour_by_its_vocabulary():
     ("a 3d model of a dusty rose chair", "a 3d model of a pink chair", "dusty rose", "pink"),  # the longest name wins
     ("I would like an armchair painted gray", "I would like an armchair painted grey", "gray", "grey"),
     ("a red leather armchair", "a red leather armchair", None, "red"),  # a palette word is kept, and nothing else read
-    ("render a jet folding chair", "render a jet folding chair", None, None),  # not a colour name the lexicon knows
+    ("render a jet folding chair", "render a black folding chair", "jet", "black"),  # not a survey name: WordNet's
+    ("an ebony stool", "a black stool", "ebony", "black"),
+    ("a walnut chair", "a walnut chair", None, None),  # a colour name neither source knows
+    ("a classic garden chair", "a classic garden chair", None, None),  # ordinary words are no colours
     ("a chair for my living room", "a chair for my living room", None, None),
     ("", "", None, None),
 ])
@@ -410,6 +413,29 @@ def test_the_colour_lexicon_reads_names_by_their_colour_not_their_spelling():
     assert palette_prompt("a navy chair").palette == "black" and palette_prompt("a navy blue chair").name is None
     assert palette_prompt("a navy blue chair").palette == "blue"
     assert palette_prompt("a chartreuse chair").palette == "yellow"
+
+
+def test_the_wordnet_colour_table_is_what_wordnet_gives():
+    from model.prior.colour_words import wordnet_colour_table, wordnet_colours
+
+    committed = wordnet_colours()
+    assert wordnet_colour_table() == committed, "rebuild it: python -m model.prior.colour_words"
+    assert len(committed) > 300 and set(committed.values()) <= set(__import__("model.data.colours", fromlist=["PALETTE"]).PALETTE)
+    # senses read through the hypernyms: a coal black is a black, a bone a white, a dark blue a blue
+    assert (committed["ebony"], committed["ivory"], committed["navy"]) == ("black", "white", "blue")
+    # words WordNet gives no colour sense are not in it, however a colour-name list spells them
+    assert not {"garden", "classic", "vintage", "create", "easy", "metal", "wood", "chair", "stool"} & committed.keys()
+
+
+def test_no_prompt_template_or_type_word_reads_as_a_colour():
+    import re
+
+    from model.prior.captions import HELD_OUT_TEMPLATES, TRAIN_TYPE_WORDS, TYPE_WORDS
+    from model.prior.colour_words import palette_prompt
+
+    words = {w for t in HELD_OUT_TEMPLATES for w in re.findall(r"[a-z]+", t.lower())}
+    words |= {w for table in (TYPE_WORDS, TRAIN_TYPE_WORDS) for kind, names in table.items() for w in re.findall(r"[a-z]+", " ".join((kind, *names)))}
+    assert [w for w in sorted(words) if palette_prompt(f"a {w}").palette is not None] == []
 
 
 def test_composed_captions_aim_at_the_shape_and_a_wearer_of_the_colour():
