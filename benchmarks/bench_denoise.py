@@ -248,7 +248,11 @@ def main(argv: list[str] | None = None) -> int:
     print("test-split objects:")
     unseen = test_objects(bench, args.objects, picture)
     save_grid(RESULTS / "denoise.png", picture)
+    from model.denoise.finetune import DenoiseConfig
+    from model.nerf import config
+
     write_result("denoise", {
+        "denoise": config.to_dict(DenoiseConfig()),
         "command": "python -m benchmarks.bench_denoise " + " ".join(sys.argv[1:] if argv is None else argv),
         "train_command": "hypnerf " + " ".join(train_arguments(summary["steps"])),
         "denoiser": {**bench.meta["denoiser"], "parameters": summary["parameters"]},

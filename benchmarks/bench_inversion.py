@@ -29,6 +29,8 @@ DENOISER_VARIANTS = {
                             "--out runs/denoise/denoiser-tto --steps 3000 --instances 0 --tto-objects 12 --tto-views 24"),
     "tto_denoise_inputs": ("denoiser-tto", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
                            "--out runs/denoise/denoiser-tto --steps 3000 --instances 0 --tto-objects 12 --tto-views 24"),
+    "tto_denoise_rounds": ("denoiser-tto", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
+                           "--out runs/denoise/denoiser-tto --steps 3000 --instances 0 --tto-objects 12 --tto-views 24"),
     "tto_denoise_aug_tto": ("denoiser-tto-aug", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
                             "--out runs/denoise/denoiser-tto-aug --steps 3000 --instances 0 --tto-objects 24 --tto-views 24 "
                             "--tto-data data/sh3d-chair-augmented"),
@@ -252,7 +254,27 @@ def start(objects: int) -> None:
     })
 
 
-STAGES = {"generalization": generalization, "multiview": multiview, "speed": speed, "poses": poses, "start": start}
+def mirror(objects: int) -> None:
+    """Single-view TTO with the input's mirrored virtual view (``TTOConfig(mirror=True)``; chairs are
+    left-right symmetric) on the generalisation table's objects and views, against the table's own
+    ``tto`` row (same objects, input views and seeds)."""
+    if (RESULTS / "tto_mirror.json").is_file():
+        return
+    from model.eval.generalization import GeneralizationConfig
+    from model.eval.generalization import generalization as table
+    from model.optimize.tto import TTOConfig
+
+    reference = json.loads((RESULTS / "generalization.json").read_text())
+    report = table(RUN, DATA, GeneralizationConfig(objects=reference["objects"], rows=("tto",), grid_rows=0, tto=TTOConfig(mirror=True)))
+    mirrored, plain = report["rows"]["tto"], reference["rows"]["tto"]
+    print(f"TTO {plain['psnr']:.2f} / {plain['psnr_fg']:.2f} dB; with the mirrored view {mirrored['psnr']:.2f} / {mirrored['psnr_fg']:.2f} dB", flush=True)
+    write_result("tto_mirror", {"rows": {"tto": plain, "tto_mirror": {**mirrored, "tto_s": report["tto_s"]}}, "objects": report["objects"],
+                                "tto_s": reference["tto_s"], "floor_psnr": report["floor_psnr"], "floor_psnr_fg": report["floor_psnr_fg"],
+                                "reference": "the tto row of benchmarks/results/generalization.json (same objects, input views and seeds)",
+                                "command": "python -m benchmarks.bench_inversion --stage mirror"})
+
+
+STAGES = {"generalization": generalization, "multiview": multiview, "speed": speed, "poses": poses, "start": start, "mirror": mirror}
 
 
 def main() -> None:

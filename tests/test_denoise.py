@@ -355,6 +355,25 @@ def test_denoise_and_finetune_end_to_end(instance, denoiser_run):
         ring_poses(elevations=(90.0,))
 
 
+def test_each_round_denoises_and_finetunes_the_nerf_the_round_before_finetuned(instance, denoiser_run):
+    prior, params, grid, views = instance
+    denoiser, _ = load_denoiser(denoiser_run[0])
+    field, poses = prior.net.cfg.field, ring_poses(elevations=(30.0,), per_ring=2)
+    reports = []
+    two = denoise_and_finetune(params, field, prior.scene, denoiser, poses, views.camera, DenoiseConfig(finetune=tiny_finetune(3, progress_every=1), rounds=2),
+                               grid=grid, progress=reports.append)
+    first = denoise_and_finetune(params, field, prior.scene, denoiser, poses, views.camera, DenoiseConfig(finetune=tiny_finetune(3), rounds=1), grid=grid)
+    second = denoise_and_finetune(first.params, field, prior.scene, denoiser, poses, views.camera, DenoiseConfig(finetune=tiny_finetune(3), rounds=1),
+                                  grid=first.grid)
+    assert all(torch.allclose(two.params[k], second.params[k], atol=1e-6) for k in params)
+    assert not all(torch.allclose(two.params[k], first.params[k], atol=1e-6) for k in params)
+    assert torch.allclose(two.denoised, second.denoised, atol=1e-6)  # the last round's views
+    assert [r["step"] for r in reports] == list(range(6)) and {r["steps"] for r in reports} == {6}
+    assert DenoiseConfig(finetune=tiny_finetune(3), rounds=2).total_steps == 6
+    with pytest.raises(ValueError, match="at least one round"):
+        DenoiseConfig(rounds=0)
+
+
 def test_input_views_make_up_their_share_of_the_finetune_views(instance, denoiser_run):
     from model.denoise.finetune import with_inputs
 
@@ -398,7 +417,8 @@ def test_invert_command_searches_the_pose_then_denoises_and_finetunes(trained, c
     assert main([*command, "--image", str(image)]) != 0 and "without --pose give exactly one --image" in caplog.text
     assert main([*command, "--fov", "200"]) != 0 and "--fov is a horizontal field of view" in caplog.text
     assert main([*command, "--pose", str(tmp_path / "pose.json"), "--fov", "40"]) != 0 and "the pose file gives the camera" in caplog.text
-    assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-steps", "6"]) == 0
+    assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-rounds", "0"]) != 0 and "--denoise-rounds must be at least 1" in caplog.text
+    assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-steps", "6", "--denoise-rounds", "2"]) == 0
     params, grid, _, _, meta = load_nerf(out / "nerf.safetensors")
     assert meta["denoised"] and meta["pose"] == "searched" and grid.fraction > 0
     assert all(torch.isfinite(v).all() for v in params.values())

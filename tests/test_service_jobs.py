@@ -235,6 +235,9 @@ BAD = {
     "steps and finetune over the cap": (422, lambda v: {"options": {"steps": 300, "finetune_steps": 200}}),
     "unknown option": (422, lambda v: {"options": {"stpes": 10}}),
     "denoise steps over the cap": (422, lambda v: {"options": {"steps": 200, "denoise": True}}),
+    # 100 + 160 would fit; every round's steps count
+    "denoise rounds over the cap": (422, lambda v: {"options": {"steps": 100, "denoise": True, "denoise_steps": 160, "denoise_rounds": 2}}),
+    "no denoise round": (422, lambda v: {"options": {"steps": 10, "denoise": True, "denoise_rounds": 0}}),
     "webhook host not allowed": (422, lambda v: {"options": {"steps": 10, "webhook_url": "http://example.com/hook"}}),
     "webhook not http": (422, lambda v: {"options": {"steps": 10, "webhook_url": "file:///etc/passwd"}}),
     "one mask for two images": (422, lambda v: {"masks": [png(32, 32, (255, 255, 255, 255))]}),
@@ -340,10 +343,10 @@ def test_jobs_are_listed_newest_first_with_a_status_filter(client, done):
 
 
 def test_finetune_and_denoise_make_a_finetuned_nerf(client, views):
-    options = {**QUICK, "steps": 6, "finetune_steps": 3, "denoise": True, "denoise_steps": 4}
+    options = {**QUICK, "steps": 6, "finetune_steps": 3, "denoise": True, "denoise_steps": 4, "denoise_rounds": 2}
     job = wait_for(client, submit(client, views, options).json()["id"], finished)
     assert job["status"] == "succeeded", job
-    assert job["result"]["finetuned"] and job["result"]["steps"] <= 6 + 3 + 4 and job["progress"]["steps"] == 13
+    assert job["result"]["finetuned"] and job["result"]["steps"] <= 6 + 3 + 2 * 4 and job["progress"]["steps"] == 6 + 3 + 2 * 4
     nerf = client.get(f"/v1/nerfs/{job['result']['nerf_id']}").json()
     assert nerf["codes"] is None and nerf["source"] == {"inversion": job["id"], "finetuned": True}
 

@@ -39,7 +39,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--query", help="query network folder from `hypnerf train-query` (for --init query)")
     parser.add_argument("--denoise", action="store_true", help="then denoise-and-finetune: render fixed views, denoise them, finetune the NeRF on them")
     parser.add_argument("--denoiser", help="denoiser folder from `hypnerf train-denoiser` (for --denoise)")
-    parser.add_argument("--denoise-steps", type=int, help="finetune steps on the denoised views (default 300)")
+    parser.add_argument("--denoise-steps", type=int, help="finetune steps on the denoised views per round (default 300)")
+    parser.add_argument("--denoise-rounds", type=int, help="rounds of render, denoise and finetune, each on the NeRF the round before finetuned (default 2)")
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--mesh-resolution", type=int, default=128)
     parser.set_defaults(func=cmd_invert)
@@ -159,6 +160,10 @@ def cmd_invert(args) -> int:
             if args.denoise_steps < 1:
                 raise ValueError(f"--denoise-steps must be at least 1, got {args.denoise_steps}")
             settings = replace(settings, finetune=replace(settings.finetune, steps=args.denoise_steps))
+        if args.denoise_rounds is not None:
+            if args.denoise_rounds < 1:
+                raise ValueError(f"--denoise-rounds must be at least 1, got {args.denoise_rounds}")
+            settings = replace(settings, rounds=args.denoise_rounds)
         denoise = denoise_and_finetune_prior(Path(args.denoiser), settings)  # loaded before the long part: a bad folder fails now
     log.info("optimising codes for %d view(s) of %dx%d%s", len(images), images.shape[2], images.shape[1],
              ", searching for the pose" if c2w is None else "")
@@ -172,8 +177,8 @@ def cmd_invert(args) -> int:
     bar.close()
     params, grid = result.params, result.grid
     if denoise is not None:
-        log.info("denoise and finetune: rendering fixed views, denoising them, finetuning the NeRF on them")
-        finetune_bar = tqdm(total=settings.finetune.steps, desc="denoise and finetune", unit="step")
+        log.info("denoise and finetune (%d round(s)): rendering fixed views, denoising them, finetuning the NeRF on them", settings.rounds)
+        finetune_bar = tqdm(total=settings.total_steps, desc="denoise and finetune", unit="step")
 
         def finetune_progress(entry: dict) -> None:
             finetune_bar.update(entry["step"] + 1 - finetune_bar.n)

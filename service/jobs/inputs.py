@@ -77,10 +77,9 @@ def parse_options(text: str | None, settings: Settings, resident: Resident) -> I
         raise ProblemError(422, "Invalid inversion options", "; ".join(f"{e['field']}: {e['message']}" for e in errors[:5]),
                            kind="validation", errors=errors) from None
     cap = settings.limits.max_tto_steps
-    total = (options.steps or TTOConfig.steps) + options.finetune_steps + (
-        (options.denoise_steps or FinetuneConfig.steps) if options.denoise else 0)
+    total = (options.steps or TTOConfig.steps) + options.finetune_steps + (denoise_config(options).total_steps if options.denoise else 0)
     if total > cap:
-        raise _invalid("options.steps", f"asks for {total} optimisation steps in all (steps + finetune_steps + denoise_steps); "
+        raise _invalid("options.steps", f"asks for {total} optimisation steps in all (steps + finetune_steps + denoise_steps x denoise_rounds); "
                        f"at most {cap} are allowed (HYPNERF_LIMITS__MAX_TTO_STEPS)", "Too many steps")
     if options.denoise and resident.bundle.denoiser_path is None:
         raise _invalid("options.denoise", "the served bundle has no denoiser; submit without denoise, or serve a bundle exported "
@@ -172,7 +171,8 @@ def tto_config(options: InversionOptions) -> TTOConfig:
 
 def denoise_config(options: InversionOptions) -> DenoiseConfig:
     steps = {"steps": options.denoise_steps} if options.denoise_steps is not None else {}
-    return DenoiseConfig(finetune=FinetuneConfig(seed=options.seed, progress_every=1, **steps))
+    rounds = {"rounds": options.denoise_rounds} if options.denoise_rounds is not None else {}
+    return DenoiseConfig(finetune=FinetuneConfig(seed=options.seed, progress_every=1, **steps), **rounds)
 
 
 def request_digest(request: dict) -> str:

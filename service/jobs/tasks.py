@@ -121,7 +121,7 @@ def _result(job: Job, context: WorkerContext, lease: Lease) -> tuple[str, dict |
     images, c2w, cameras = load_views(request, context.blobs)
     cfg = from_dict(TTOConfig, request["tto"])
     denoise = from_dict(DenoiseConfig, request["denoise"]) if request["denoise"] else None
-    progress = _Progress(lease, cfg.steps + cfg.finetune_steps + (denoise.finetune.steps if denoise else 0))
+    progress = _Progress(lease, cfg.steps + cfg.finetune_steps + (denoise.total_steps if denoise else 0))
     inverted = invert(bundle.hypernet(), bundle.scene, images, c2w, cameras, cfg, progress=progress, should_stop=lease.should_stop)
     if lease.should_stop():
         return CANCELED, None, None
@@ -129,13 +129,13 @@ def _result(job: Job, context: WorkerContext, lease: Lease) -> tuple[str, dict |
     steps = inverted.history[-1]["step"] + 1 if inverted.history else 0
     psnr = inverted.history[-1]["psnr"] if inverted.history else None
     if denoise is not None:
-        progress.offset = progress.total - denoise.finetune.steps
+        progress.offset = progress.total - denoise.total_steps
         tuned = denoise_and_finetune(params, bundle.field, bundle.scene, context.denoiser(), ring_poses(), bundle.camera, denoise, grid=grid,
                                      inputs=(images, inverted.c2w, cameras), progress=lambda report: progress(report, "denoise"))
         if lease.should_stop():
             return CANCELED, None, None
         params, grid, finetuned = tuned.params, tuned.grid, True
-        steps += denoise.finetune.steps
+        steps += denoise.total_steps
     nerf_id = params_nerf_id(bundle.digest, params)
     codes = {"shape": inverted.shape_code.tolist(), "color": inverted.color_code.tolist()}
     meta = {"source": {"inversion": job.id, "finetuned": finetuned}, "bundle": bundle.digest,

@@ -239,6 +239,7 @@ class InversionOptions(RequestPart):
     seed: int | None = Field(None, ge=0)
     denoise: bool | None = None
     denoise_steps: int | None = Field(None, ge=1)
+    denoise_rounds: int | None = Field(None, ge=1)
     webhook_url: str | None = None
 
 
