@@ -24,17 +24,19 @@ RUN = ROOT / "runs" / "prior-cpu"
 DATA = ROOT / "data" / "sh3d-chair-variants"
 DENOISER = ROOT / "runs" / "denoise" / "denoiser"
 # denoisers trained with TTO pairs besides the shipped one's pairs, each a further table row
+SHIPPED_TRAIN = ("hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants --out runs/denoise/denoiser-tto "
+                 "--steps 3000 --instances 0 --tto-objects 12 --tto-views 24")
 DENOISER_VARIANTS = {
-    "tto_denoise_val_tto": ("denoiser-tto", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
-                            "--out runs/denoise/denoiser-tto --steps 3000 --instances 0 --tto-objects 12 --tto-views 24"),
-    "tto_denoise_inputs": ("denoiser-tto", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
-                           "--out runs/denoise/denoiser-tto --steps 3000 --instances 0 --tto-objects 12 --tto-views 24"),
-    "tto_denoise_rounds": ("denoiser-tto", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
-                           "--out runs/denoise/denoiser-tto --steps 3000 --instances 0 --tto-objects 12 --tto-views 24"),
+    "tto_denoise_val_tto": ("denoiser-tto", SHIPPED_TRAIN),
+    "tto_denoise_inputs": ("denoiser-tto", SHIPPED_TRAIN),
+    "tto_denoise_rounds": ("denoiser-tto", SHIPPED_TRAIN),
+    "tto_denoise_rounds3": ("denoiser-tto", SHIPPED_TRAIN),
     "tto_denoise_aug_tto": ("denoiser-tto-aug", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
                             "--out runs/denoise/denoiser-tto-aug --steps 3000 --instances 0 --tto-objects 24 --tto-views 24 "
                             "--tto-data data/sh3d-chair-augmented"),
 }
+# rows whose denoise-and-finetune settings differ from the defaults: their evaluation's arguments
+ROW_EVAL_ARGS = {"tto_denoise_rounds3": ("--denoise-rounds", "3")}
 
 
 def generalization(objects: int) -> None:
@@ -51,17 +53,18 @@ def generalization(objects: int) -> None:
         _merge_denoise_row(report, "tto_denoise", DENOISER, RESULTS.parent.parent / "runs" / "generalization-denoise.json")
     for row, (folder, train_command) in DENOISER_VARIANTS.items():
         if row not in report["rows"] and (DENOISER.parent / folder / "denoiser.safetensors").is_file():
-            _merge_denoise_row(report, row, DENOISER.parent / folder, RESULTS.parent.parent / "runs" / f"generalization-{row}.json")
+            _merge_denoise_row(report, row, DENOISER.parent / folder, RESULTS.parent.parent / "runs" / f"generalization-{row}.json",
+                               ROW_EVAL_ARGS.get(row, ()))
             report.setdefault("denoiser_variants", {})[row] = {"train_command": train_command}
     table.write_text(json.dumps(report, indent=2) + "\n")
 
 
-def _merge_denoise_row(report: dict, row: str, denoiser: Path, side: Path) -> None:
+def _merge_denoise_row(report: dict, row: str, denoiser: Path, side: Path, eval_args: tuple[str, ...] = ()) -> None:
     """Add the ``tto_denoise`` row of a second run with ``denoiser`` to the table as ``row``; TTO is
     seeded, so that run's ``tto`` row must reproduce the table's (checked and recorded)."""
     if not side.is_file():
         hypnerf("eval", "generalization", "--run", str(RUN), "--data", str(DATA), "--json", str(side), "--objects", str(report["objects"]),
-                "--rows", "tto,tto_denoise", "--denoiser", str(denoiser))
+                "--rows", "tto,tto_denoise", "--denoiser", str(denoiser), *eval_args)
     extra = json.loads(side.read_text())
     drift = abs(extra["rows"]["tto"]["psnr_fg"] - report["rows"]["tto"]["psnr_fg"])
     if drift > 0.05:

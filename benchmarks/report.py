@@ -309,6 +309,7 @@ GENERALIZATION_ROWS = {
     "tto_denoise_val_tto": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects",
     "tto_denoise_aug_tto": "TTO + denoise-and-finetune, denoiser also on TTO of 24 deformed-copy objects",
     "tto_denoise_rounds": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects",
+    "tto_denoise_rounds3": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects",
 }
 
 
@@ -356,7 +357,8 @@ def generalization_section(data: dict) -> list[str]:
             lines += [f"{_generalization_label(data, row)} over TTO: {data['rows'][row]['psnr_fg'] - tto['psnr_fg']:+.2f} dB foreground, "
                       f"{data['rows'][row]['psnr'] - tto['psnr']:+.2f} dB full (target +0.8)."
                       + (f" Denoiser: `{data['denoiser_variants'][row]['train_command']}`; rows from a second seeded run whose TTO row "
-                         f"reproduced the table's ({data['tto_reproduced_psnr_fg_' + row]:.2f} dB fg)." if row in data.get("denoiser_variants", {}) else ""), ""]
+                         f"reproduced the table's ({data['tto_reproduced_psnr_fg_' + row]:.2f} dB fg)." if row in data.get("denoiser_variants", {}) else "")
+                      + (f" {data['row_notes'][row]}" if row in data.get("row_notes", {}) else ""), ""]
     if SHIPPED_DENOISE_ROW in data["rows"]:
         lines += ["The demo bundle ships the denoiser and settings of the row marked shipped (its TTO pairs come from validation objects, "
                   "never the test split). The denoiser was chosen over the paper's-pairs and deformed-copy denoisers on this table, so its "

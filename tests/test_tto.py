@@ -259,6 +259,13 @@ def test_generalization_table_scores_every_row_above_the_floor_and_draws_renders
     assert json.loads(out.read_text())["objects"] == 1
 
 
+def test_generalization_command_rejects_bad_rows_and_rounds(trained, chairs, tmp_path, capsys):
+    command = ["eval", "generalization", "--run", str(trained[0]), "--data", str(chairs), "--json", str(tmp_path / "g.json")]
+    assert main([*command, "--rows", "tto,bogus"]) == 2 and "unknown rows" in capsys.readouterr().err
+    assert main([*command, "--denoise-rounds", "0"]) == 2 and "--denoise-rounds must be at least 1" in capsys.readouterr().err
+    assert not (tmp_path / "g.json").exists()
+
+
 # ---------------------------------------------------------------------------------------------
 # Poses
 

@@ -216,12 +216,14 @@ def register_generalization(eval_sub) -> None:
     gen.add_argument("--finetune-steps", type=int, default=0)
     gen.add_argument("--fit-steps", type=int, default=500, help="steps of the single-view fit baseline")
     gen.add_argument("--denoiser", help="a denoiser folder from `hypnerf train-denoiser` (adds the tto_denoise row)")
+    gen.add_argument("--denoise-rounds", type=int, help="rounds of denoise-and-finetune in the tto_denoise row (default 2)")
     gen.add_argument("--rows", help=f"comma-separated rows to compute (default all of {','.join(ROWS)})")
     gen.set_defaults(func=cmd_eval_generalization)
 
 
 def cmd_eval_generalization(args) -> int:
     from model.cli.main import _write_json
+    from model.denoise.finetune import DenoiseConfig
     from model.eval.generalization import ROWS, GeneralizationConfig, generalization
     from model.optimize.tto import TTOConfig
 
@@ -231,7 +233,11 @@ def cmd_eval_generalization(args) -> int:
     if unknown or not rows:
         print(f"hypnerf eval generalization: error: unknown rows {unknown or rows}; choose from {', '.join(ROWS)}", file=sys.stderr)
         return 2
-    cfg = GeneralizationConfig(objects=args.objects, input_views=args.views, tto=tto, fit_steps=args.fit_steps, rows=rows)
+    if args.denoise_rounds is not None and args.denoise_rounds < 1:
+        print(f"hypnerf eval generalization: error: --denoise-rounds must be at least 1, got {args.denoise_rounds}", file=sys.stderr)
+        return 2
+    denoise = DenoiseConfig(**({"rounds": args.denoise_rounds} if args.denoise_rounds else {}))
+    cfg = GeneralizationConfig(objects=args.objects, input_views=args.views, tto=tto, denoise=denoise, fit_steps=args.fit_steps, rows=rows)
     out = Path(args.json)
     report = generalization(Path(args.run), Path(args.data), cfg, denoiser=Path(args.denoiser) if args.denoiser else None, out=out)
     report["command"] = "hypnerf " + " ".join(sys.argv[1:])

@@ -60,6 +60,8 @@ class GeneralizationConfig:
     """Which held-out frame is the input view."""
     input_views: int = 1
     tto: TTOConfig = dataclass_field(default_factory=TTOConfig)
+    denoise: DenoiseConfig = dataclass_field(default_factory=DenoiseConfig)
+    """Denoise-and-finetune settings of the ``tto_denoise`` row."""
     fit_steps: int = 500
     """Steps of the single-view fit baseline (4096 rays a step: over 100 passes over its one view)."""
     rows: tuple[str, ...] = ROWS
@@ -133,7 +135,7 @@ def generalization(run: Path, data: Path, cfg: GeneralizationConfig, *, denoiser
     ids = test_objects(data, cfg.objects)
     if not ids:
         raise ValueError(f"{data} has no test-split objects to evaluate on")
-    denoise = _load_denoiser(denoiser) if denoiser is not None else None
+    denoise = _load_denoiser(denoiser, cfg.denoise) if denoiser is not None else None
     rows = [r for r in cfg.rows if r != "tto_denoise" or denoise is not None]
     per_object: list[dict] = []
     features: dict[str, list[np.ndarray]] = {r: [] for r in (*rows, "ground_truth")}
@@ -212,7 +214,7 @@ def generalization(run: Path, data: Path, cfg: GeneralizationConfig, *, denoiser
         "fit_s": float(np.mean([r["fit_s"] for r in per_object])) if "single_view_fit" in rows else None,
         "tto_denoise_s": float(np.mean([r["tto_denoise_s"] for r in per_object])) if "tto_denoise" in rows else None,
         "config": config.to_dict(cfg),
-        "denoise": config.to_dict(DenoiseConfig()) if "tto_denoise" in rows else None,
+        "denoise": config.to_dict(cfg.denoise) if "tto_denoise" in rows else None,
         "per_object": per_object,
     }
     if out is not None:
@@ -223,9 +225,9 @@ def generalization(run: Path, data: Path, cfg: GeneralizationConfig, *, denoiser
     return report
 
 
-def _load_denoiser(path: Path):
-    """``(prior, params, inputs) -> (params, grid)``: denoise-and-finetune (default
-    ``DenoiseConfig``, recorded in the report) with the denoiser at ``path``."""
+def _load_denoiser(path: Path, settings: DenoiseConfig):
+    """``(prior, params, inputs) -> (params, grid)``: denoise-and-finetune with ``settings``
+    (recorded in the report) and the denoiser at ``path``."""
     from model.denoise import denoise_and_finetune_prior
 
-    return denoise_and_finetune_prior(path, DenoiseConfig())
+    return denoise_and_finetune_prior(path, settings)
