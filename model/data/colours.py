@@ -39,6 +39,11 @@ def colour_names(rgb: np.ndarray) -> list[str]:
     return [_NAMES[i] for i in distance.argmin(axis=1)]
 
 
+def largest_share(shares: dict[str, float]) -> str:
+    """The name with the largest share; a tie goes to the name first in alphabetical order."""
+    return max(sorted(shares), key=shares.get)
+
+
 def dominant_colour(mesh: RenderMesh) -> str:
     """The palette name covering the largest surface area of the mesh (by mean face colour)."""
     triangles = mesh.triangles
@@ -46,7 +51,7 @@ def dominant_colour(mesh: RenderMesh) -> str:
     unique, inverse = np.unique(mesh.mean_face_colours()[:, :3], axis=0, return_inverse=True)
     names = np.array(colour_names(unique / 255.0))[inverse.reshape(-1)]
     totals = {name: float(area[names == name].sum()) for name in set(names.tolist())}
-    return max(sorted(totals), key=totals.get)
+    return largest_share(totals)
 
 
 def article(word: str) -> str:

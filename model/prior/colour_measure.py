@@ -26,7 +26,7 @@ import torch
 from tqdm import tqdm
 
 from model.data.cameras import evaluation_poses
-from model.data.colours import PALETTE
+from model.data.colours import PALETTE, largest_share
 from model.data.raycast import AMBIENT, LIGHTS, linear_to_srgb, srgb_to_linear
 from model.nerf.cache import cache_folder
 from model.nerf.rays import Intrinsics
@@ -72,7 +72,7 @@ def dominant_colour_of(images: torch.Tensor, opacity: torch.Tensor, limit: int =
         pixels = pixels[np.random.default_rng(seed).choice(len(pixels), limit, replace=False)]
     names = shading_invariant_names(pixels)
     shares = {name: names.count(name) / len(names) for name in set(names)}
-    return max(sorted(shares), key=shares.get), shares
+    return largest_share(shares), shares
 
 
 @torch.no_grad()

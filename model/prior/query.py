@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from model.data.colours import largest_share
 from model.nerf import config
 from model.prior.captions import caption_colour
 from model.prior.colour_words import PromptColour, palette_prompt
@@ -292,7 +293,7 @@ def colour_wearers(colours: list[str | None], colour: str | None, shares: list[d
     captioned = [n for n, c in enumerate(colours) if c == colour]
     if shares is None:
         return captioned
-    dominated = [n for n in captioned if shares[n] and max(sorted(shares[n]), key=shares[n].get) == colour]
+    dominated = [n for n in captioned if shares[n] and largest_share(shares[n]) == colour]
     return dominated or captioned
 
 
