@@ -16,13 +16,15 @@ import json
 import sys
 import time
 
-from benchmarks.bench_denoise import RUN, quality
+from benchmarks.bench_denoise import RUN
 from benchmarks.bench_denoiser_selection import (
     DEVELOPMENT,
     SHIPPED,
     TTO_CACHE,
+    development_object,
     development_objects,
     ensure_candidate,
+    scored,
 )
 from benchmarks.common import ROOT, write_result
 
@@ -30,17 +32,12 @@ PARTS = ROOT / "runs" / "denoise" / "rounds"
 
 
 def run_part(objects: list[str], rounds: int, part: int) -> None:
-    from safetensors.torch import load_file
     from tqdm import tqdm
 
-    from model.data.dataset import load_views
     from model.denoise.finetune import DenoiseConfig, denoise_and_finetune, ring_poses
     from model.denoise.io import load_denoiser
-    from model.eval.field import render_views
     from model.nerf import config
     from model.nerf.rays import Intrinsics
-    from model.nerf.renderer import RenderConfig
-    from model.prior.codes import generated_grid
     from model.prior.io import load_prior
 
     denoiser, _ = load_denoiser(ensure_candidate(SHIPPED))
@@ -51,22 +48,14 @@ def run_part(objects: list[str], rounds: int, part: int) -> None:
         cached = TTO_CACHE / f"{object_id}.safetensors"
         if not cached.is_file():
             raise SystemExit(f"{cached} is missing: run `python -m benchmarks.bench_denoiser_selection` first (it inverts the objects)")
-        views = load_views(DEVELOPMENT / object_id, None)
-        inputs, evaluation = views.subset([0]), views.subset(list(range(1, len(views.files), 3)))
-        params = load_file(str(cached))
-        grid = generated_grid(params, field, prior.scene)
-
-        def scored(p, g, evaluation=evaluation) -> dict:
-            rgb, opacity, _, _ = render_views(p, field, evaluation, RenderConfig(), g, prior.scene)
-            return quality(rgb, evaluation.images, opacity)
-
-        row = {"tto": scored(params, grid)}
+        inputs, evaluation, params, grid = development_object(prior, object_id)
+        row = {"tto": scored(prior, params, grid, evaluation)}
         for count in range(1, rounds + 1):
             began = time.perf_counter()
             result = denoise_and_finetune(params, field, prior.scene, denoiser, ring_poses(), camera, DenoiseConfig(rounds=1), grid=grid,
                                           inputs=(inputs.images, inputs.c2w, inputs.cameras))
             params, grid = result.params, result.grid
-            row[f"rounds {count}"] = {**scored(params, grid), "round_s": time.perf_counter() - began}
+            row[f"rounds {count}"] = {**scored(prior, params, grid, evaluation), "round_s": time.perf_counter() - began}
             print(f"  {object_id} after {count} round(s): {row[f'rounds {count}']['psnr']:.2f} / {row[f'rounds {count}']['psnr_fg']:.2f} dB", flush=True)
         rows[object_id] = row
     PARTS.mkdir(parents=True, exist_ok=True)

@@ -62,12 +62,39 @@ def development_objects(prior, count: int) -> list[str]:
     return [ids[k] for k in spread(2 * count, len(ids))][1::2]
 
 
+def development_object(prior, object_id: str):
+    """``(inputs, evaluation, params, grid)``: the object's input view (its first), its evaluation
+    views (every third after it) and its single-view TTO NeRF (batch 1, inverted once and cached
+    under ``TTO_CACHE``) with that NeRF's occupancy grid."""
+    from model.data.dataset import load_views
+    from model.optimize.tto import TTOConfig, invert
+    from model.prior.codes import generated_grid
+
+    views = load_views(DEVELOPMENT / object_id, None)
+    inputs, evaluation = views.subset([0]), views.subset(list(range(1, len(views.files), 3)))
+    cached = TTO_CACHE / f"{object_id}.safetensors"
+    if not cached.is_file():
+        TTO_CACHE.mkdir(parents=True, exist_ok=True)
+        result = invert(prior.net, prior.scene, inputs.images, inputs.c2w, inputs.cameras, TTOConfig())
+        save_file({k: v.contiguous() for k, v in result.params.items()}, str(cached))
+    params = load_file(str(cached))
+    return inputs, evaluation, params, generated_grid(params, prior.net.cfg.field, prior.scene)
+
+
+def scored(prior, params, grid, evaluation) -> dict:
+    """:func:`benchmarks.bench_denoise.quality` of the NeRF ``params`` (with ``grid``) rendered at ``evaluation``'s views."""
+    from model.eval.field import render_views
+    from model.nerf.renderer import RenderConfig
+
+    rgb, opacity, _, _ = render_views(params, prior.net.cfg.field, evaluation, RenderConfig(), grid, prior.scene)
+    return quality(rgb, evaluation.images, opacity)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--objects", type=int, default=4, help="deformed copies inverted")
     parser.add_argument("--candidates", nargs="*", default=list(CANDIDATES), choices=list(CANDIDATES), help="denoisers compared (trained when missing)")
     args = parser.parse_args(argv)
-    from model.data.dataset import load_views
     from model.denoise.finetune import (
         DenoiseConfig,
         denoise_and_finetune,
@@ -81,7 +108,6 @@ def main(argv: list[str] | None = None) -> int:
     from model.nerf.images import composite_over
     from model.nerf.rays import Intrinsics
     from model.nerf.renderer import RenderConfig
-    from model.optimize.tto import TTOConfig, invert
     from model.prior.codes import generated_grid
     from model.prior.io import load_prior
 
@@ -92,24 +118,13 @@ def main(argv: list[str] | None = None) -> int:
     prior = load_prior(RUN)
     field, camera = prior.net.cfg.field, config.from_dict(Intrinsics, prior.meta["camera"])
     objects = development_objects(prior, args.objects)
-    TTO_CACHE.mkdir(parents=True, exist_ok=True)
     rows = {}
     for object_id in tqdm(objects, desc="development objects", unit="object"):
-        views = load_views(DEVELOPMENT / object_id, None)
-        inputs, evaluation = views.subset([0]), views.subset(list(range(1, len(views.files), 3)))
-        cached = TTO_CACHE / f"{object_id}.safetensors"
-        if not cached.is_file():
-            result = invert(prior.net, prior.scene, inputs.images, inputs.c2w, inputs.cameras, TTOConfig())
-            save_file({k: v.contiguous() for k, v in result.params.items()}, str(cached))
-        params = load_file(str(cached))
-        grid = generated_grid(params, field, prior.scene)
+        inputs, evaluation, params, grid = development_object(prior, object_id)
+        # the TTO render is kept: each candidate denoises it
         rgb, opacity, _, _ = render_views(params, field, evaluation, RenderConfig(), grid, prior.scene)
         row = {"tto": quality(rgb, evaluation.images, opacity)}
         photo = (inputs.images, inputs.c2w, inputs.cameras)
-
-        def scored(tuned, tuned_grid, evaluation=evaluation) -> dict:
-            rgb_after, opacity_after, _, _ = render_views(tuned, field, evaluation, RenderConfig(), tuned_grid, prior.scene)
-            return quality(rgb_after, evaluation.images, opacity_after)
 
         for name, denoiser in denoisers.items():
             rgba = denoise_renders(denoiser, rgb, opacity)
@@ -117,12 +132,12 @@ def main(argv: list[str] | None = None) -> int:
             results = {share: denoise_and_finetune(params, field, prior.scene, denoiser, ring_poses(), camera, DenoiseConfig(input_share=share),
                                                    grid=grid, inputs=photo) for share in shares}
             row[name] = {"denoised_image": quality(composite_over(rgba), evaluation.images, rgba[..., 3]),
-                         "denoise_finetune": scored(results[shares[0]].params, results[shares[0]].grid)}
+                         "denoise_finetune": scored(prior, results[shares[0]].params, results[shares[0]].grid, evaluation)}
             for share in shares[1:]:
-                row[f"{name} input share {share:g}"] = {"denoise_finetune": scored(results[share].params, results[share].grid)}
+                row[f"{name} input share {share:g}"] = {"denoise_finetune": scored(prior, results[share].params, results[share].grid, evaluation)}
         # the control: the same finetune on the input photo alone, no denoised views
         alone = finetune_on_views(params, field, prior.scene, *photo, DenoiseConfig().finetune, grid=grid)
-        row["input photo alone"] = {"denoise_finetune": scored(alone, generated_grid(alone, field, prior.scene))}
+        row["input photo alone"] = {"denoise_finetune": scored(prior, alone, generated_grid(alone, field, prior.scene), evaluation)}
         rows[object_id] = row
         print(f"  {object_id}: TTO {row['tto']['psnr']:.2f} / {row['tto']['psnr_fg']:.2f} dB; "
               + "; ".join(f"{n} {row[n]['denoise_finetune']['psnr']:.2f} / {row[n]['denoise_finetune']['psnr_fg']:.2f}" for n in denoisers), flush=True)
