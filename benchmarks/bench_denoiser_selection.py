@@ -34,6 +34,8 @@ CANDIDATES = {
     "denoiser-tto-share": ("the same pairs, 6000 steps, half of each batch TTO pairs",
                            "--steps 6000 --instances 0 --tto-objects 12 --tto-views 24 --tto-share 0.5"),
     "denoiser": ("prior renders alone (the paper's pairs), 3000 steps", "--steps 3000 --instances 0"),
+    "denoiser-tto-inputs3": ("prior renders + TTO of 12 validation chairs from 3 test views each, 3000 steps",
+                             "--steps 3000 --instances 0 --tto-objects 12 --tto-views 24 --tto-inputs 3"),
 }
 
 

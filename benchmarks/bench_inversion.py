@@ -34,6 +34,8 @@ DENOISER_VARIANTS = {
     "tto_denoise_aug_tto": ("denoiser-tto-aug", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
                             "--out runs/denoise/denoiser-tto-aug --steps 3000 --instances 0 --tto-objects 24 --tto-views 24 "
                             "--tto-data data/sh3d-chair-augmented"),
+    "tto_denoise_inputs3": ("denoiser-tto-inputs3", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
+                            "--out runs/denoise/denoiser-tto-inputs3 --steps 3000 --instances 0 --tto-objects 12 --tto-views 24 --tto-inputs 3"),
 }
 # rows whose denoise-and-finetune settings differ from the defaults: their evaluation's arguments
 ROW_EVAL_ARGS = {"tto_denoise_rounds3": ("--denoise-rounds", "3")}

@@ -310,6 +310,7 @@ GENERALIZATION_ROWS = {
     "tto_denoise_aug_tto": "TTO + denoise-and-finetune, denoiser also on TTO of 24 deformed-copy objects",
     "tto_denoise_rounds": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects",
     "tto_denoise_rounds3": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects",
+    "tto_denoise_inputs3": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects from 3 views each",
 }
 
 

@@ -250,6 +250,12 @@ def test_tto_pairs_render_unseen_validation_objects_against_their_ground_truth(t
     assert (got - expected).abs().max() <= 1 / 255 + 1e-6  # the ground truth of the object's own views
     rendered = as_channels(pairs["inputs"][-3:])
     assert torch.isfinite(rendered).all() and float(rendered[:, 3].mean()) > 0.01  # TTO's NeRF shows an object
+    # a second input view: one more TTO of the same object, from another test view, against the same ground truth
+    second = denoiser_training.tto_input_views(chairs, val[0], 2)[1]
+    more = cached_pairs(trained[0], chairs, tmp_path, replace(with_tto, tto_inputs=2), progress=False)
+    assert second > 0 and (tmp_path / "pairs" / denoiser_training.tto_pairs_file(val[0], second)).is_file()
+    assert len(more["inputs"]) == len(pairs["inputs"]) + 3 and torch.equal(more["inputs"][: len(pairs["inputs"])], pairs["inputs"])
+    assert torch.equal(more["targets"][-3:], pairs["targets"][-3:]) and not torch.equal(more["inputs"][-3:], pairs["inputs"][-3:])
     monkeypatch.setattr(denoiser_training, "tto_object_pairs", lambda *a, **k: (_ for _ in ()).throw(AssertionError("rendered again")))
     assert torch.equal(cached_pairs(trained[0], chairs, tmp_path, with_tto, progress=False)["inputs"], pairs["inputs"])
     with pytest.raises(ValueError, match="TTO renders of other settings"):

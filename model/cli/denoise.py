@@ -27,6 +27,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tto-data", default=pair_defaults.tto_data,
                         help="the dataset of the TTO objects, e.g. one made with --augment (default: --data)")
     parser.add_argument("--tto-views", type=int, default=pair_defaults.tto_views, help="training views rendered per TTO object")
+    parser.add_argument("--tto-inputs", type=int, default=pair_defaults.tto_inputs,
+                        help="single-view TTOs per TTO object, each from another of its test views")
     parser.add_argument("--tto-share", type=float, default=defaults.tto_share,
                         help="chance that a batch element is a TTO pair, in [0, 1] (default 0: all pairs equally likely)")
     parser.add_argument("--validate-every", type=int, default=defaults.validate_every, help="steps between validations (0: never)")
@@ -44,8 +46,10 @@ def run(args) -> int:
     for name in ("crop", "instances", "clean_views", "perturbed_nerfs", "perturbed_views", "tto_objects", "tto_views", "validate_every"):
         if getattr(args, name) < 0:
             raise ValueError(f"--{name.replace('_', '-')} must not be negative")
+    if args.tto_inputs < 1:
+        raise ValueError("--tto-inputs must be at least 1 (the TTOs of each TTO object)")
     pairs = PairsConfig(instances=args.instances, clean_views=args.clean_views, perturbed_nerfs=args.perturbed_nerfs, perturbed_views=args.perturbed_views,
-                        tto_objects=args.tto_objects, tto_views=args.tto_views,
+                        tto_objects=args.tto_objects, tto_views=args.tto_views, tto_inputs=args.tto_inputs,
                         tto_data=str(args.tto_data or ""), seed=args.seed)
     cfg = DenoiserTrainConfig(
         pairs=pairs, steps=args.steps, batch=args.batch, crop=args.crop, lr=args.lr, tto_share=args.tto_share,

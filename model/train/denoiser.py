@@ -9,7 +9,8 @@ which the instances' own NeRFs (fitted to these very views) rarely show. Optiona
 (``tto_objects``), objects the prior never saw (the dataset's validation split, or a dataset of
 deformed copies of the training meshes, ``tto_data``; never a test split) are inverted by
 single-view TTO and their training views rendered from the result: the haze TTO leaves on an
-unseen shape itself, paired with that shape's ground truth.
+unseen shape itself, paired with that shape's ground truth; ``tto_inputs`` inverts each object
+from that many of its test views, one TTO each, for as many kinds of haze per shape.
 
 Renders are computed once and cached on disk (``OUT/pairs/``: one safetensors file of uint8
 images per instance, keyed by the prior's sha256 and the pair settings), so a rerun or a resumed
@@ -71,6 +72,7 @@ class PairsConfig:
     code_noise: tuple[float, float] = (0.25, 0.75)  # noise range, in units of the codebook's per-dimension std
     tto_objects: int = 0  # objects the prior never saw inverted by TTO from their first test view (0: none)
     tto_views: int = 24  # training views of each rendered from its TTO NeRF
+    tto_inputs: int = 1  # single-view TTOs per object, each from another test view (spread over them)
     tto_data: str = ""  # the dataset they come from (default: the prior's); never its test split
     validation_instances: int = 8
     validation_views: int = 2  # held-out (test-frame) views per validation instance
@@ -141,7 +143,7 @@ def instance_pairs(prior: Prior, data: Path, instance: int, cfg: PairsConfig) ->
     return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
 
 
-TTO_FIELDS = ("tto_objects", "tto_views", "tto_data")
+TTO_FIELDS = ("tto_objects", "tto_views", "tto_data", "tto_inputs")
 
 
 def tto_objects(data: Path, prior: Prior, count: int) -> list[str]:
@@ -155,10 +157,20 @@ def tto_objects(data: Path, prior: Prior, count: int) -> list[str]:
     return [found[n] for n in spread(count, len(found))]
 
 
-def tto_object_pairs(prior: Prior, data: Path, object_id: str, cfg: PairsConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pairs of an unseen object: its NeRF from single-view TTO (first test view) rendered at
-    ``cfg.tto_views`` of its training views, against their ground truth."""
-    held = load_views(data / object_id, split="test").subset([0])
+def tto_input_views(data: Path, object_id: str, count: int) -> list[int]:
+    """The test views of an unseen object that its ``count`` TTOs start from, spread over them (the first is view 0)."""
+    return spread(count, len(load_views(data / object_id, split="test").files))
+
+
+def tto_pairs_file(object_id: str, view: int) -> str:
+    """Cache file of the pairs of ``object_id`` inverted from its test view ``view``."""
+    return f"tto-{object_id}.safetensors" if view == 0 else f"tto-{object_id}-view{view}.safetensors"
+
+
+def tto_object_pairs(prior: Prior, data: Path, object_id: str, cfg: PairsConfig, view: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pairs of an unseen object: its NeRF from single-view TTO (of its test view ``view``) rendered
+    at ``cfg.tto_views`` of its training views, against their ground truth."""
+    held = load_views(data / object_id, split="test").subset([view])
     result = invert(prior.net, prior.scene, held.images, held.c2w, held.cameras, TTOConfig(seed=cfg.seed))
     views = load_views(data / object_id, split="train")
     picks = spread(cfg.tto_views, len(views.files))
@@ -223,10 +235,13 @@ def cached_pairs(run: Path, data: Path, out: Path, cfg: PairsConfig, *, progress
         if tto_key_file.is_file() and json.loads(tto_key_file.read_text()) != tto_key:
             raise ValueError(f"{folder} holds TTO renders of other settings; delete its tto-* files or choose another --out")
         tto_key_file.write_text(json.dumps(tto_key, indent=2))
-        for object_id in tqdm(tto_objects(tto_data, prior, cfg.tto_objects), desc="TTO pairs", unit="object", disable=not progress):
-            path = folder / f"tto-{object_id}.safetensors"
+        # each (object, input view) has its own file, so asking for more inputs renders only the new ones
+        runs = [(object_id, view) for object_id in tto_objects(tto_data, prior, cfg.tto_objects)
+                for view in tto_input_views(tto_data, object_id, cfg.tto_inputs)]
+        for object_id, view in tqdm(runs, desc="TTO pairs", unit="TTO", disable=not progress):
+            path = folder / tto_pairs_file(object_id, view)
             if not path.is_file():
-                x, y = tto_object_pairs(prior, tto_data, object_id, cfg)
+                x, y = tto_object_pairs(prior, tto_data, object_id, cfg, view)
                 _atomic_save({"inputs": x, "targets": y}, path)
             stored = load_file(str(path))
             inputs.append(stored["inputs"])
