@@ -54,14 +54,23 @@ SHIPPED = "denoiser-tto"
 INPUT_SHARES = (0.0, 0.2)
 
 
+FIRST_OBJECTS = 4  # the development set the denoiser, the input share and the rounds were first chosen on
+
+
 def development_objects(prior, count: int) -> list[str]:
-    """``count`` deformed copies (ids with ``-aug``) the prior never saw, spread over them in id order."""
+    """``count`` deformed copies (ids with ``-aug``) the prior never saw, spread over them in id
+    order; beyond ``FIRST_OBJECTS``, those first ones and then others spread over the rest, so a
+    larger development set holds the first."""
     from model.data.dataset import load_index
     from model.train.denoiser import spread
 
     seen = {inst["id"] for inst in prior.instances}
     ids = sorted(e.id for e in load_index(DEVELOPMENT) if e.split == "train" and e.id not in seen and "-aug" in e.id)
-    return [ids[k] for k in spread(2 * count, len(ids))][1::2]
+    first = [ids[k] for k in spread(2 * min(count, FIRST_OBJECTS), len(ids))][1::2]
+    if count <= FIRST_OBJECTS:
+        return first
+    rest = [i for i in ids if i not in first]
+    return first + [rest[k] for k in spread(2 * (count - FIRST_OBJECTS), len(rest))][1::2]
 
 
 def development_object(prior, object_id: str):
