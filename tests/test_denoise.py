@@ -258,6 +258,8 @@ def test_tto_pairs_render_unseen_validation_objects_against_their_ground_truth(t
     assert torch.equal(more["targets"][-3:], pairs["targets"][-3:]) and not torch.equal(more["inputs"][-3:], pairs["inputs"][-3:])
     monkeypatch.setattr(denoiser_training, "tto_object_pairs", lambda *a, **k: (_ for _ in ()).throw(AssertionError("rendered again")))
     assert torch.equal(cached_pairs(trained[0], chairs, tmp_path, with_tto, progress=False)["inputs"], pairs["inputs"])
+    with pytest.raises(ValueError, match="TTOs per TTO object"):
+        cached_pairs(trained[0], chairs, tmp_path, replace(with_tto, tto_inputs=0), progress=False)
     with pytest.raises(ValueError, match="TTO renders of other settings"):
         cached_pairs(trained[0], chairs, tmp_path, replace(with_tto, tto_views=2), progress=False)
     with pytest.raises(ValueError, match="outside its test split that the prior did not train on"):

@@ -202,6 +202,8 @@ def _atomic_save(tensors: dict[str, torch.Tensor], path: Path) -> None:
 def cached_pairs(run: Path, data: Path, out: Path, cfg: PairsConfig, *, progress: bool = True) -> dict[str, torch.Tensor]:
     """Training and validation pairs (uint8 ``[N, H, W, 4]`` each: ``inputs``, ``targets``,
     ``val_inputs``, ``val_targets``), rendered once into ``out/pairs`` and read back afterwards."""
+    if cfg.tto_objects and cfg.tto_inputs < 1:
+        raise ValueError(f"tto_inputs is the number of TTOs per TTO object, at least 1; got {cfg.tto_inputs}")
     folder = Path(out) / PAIRS_DIR
     folder.mkdir(parents=True, exist_ok=True)
     # an instance's renders do not depend on how many instances are used, so that is not in the
