@@ -2,13 +2,14 @@
 
 Each round renders the ring poses of the NeRF the round before finetuned, denoises them with the
 shipped denoiser (or another of ``bench_denoiser_selection``'s candidates, ``--denoiser``) and
-finetunes on them and the input photo (``DenoiseConfig(rounds=1)`` applied again and again), so a
-later round starts from a cleaner NeRF. The objects, their cached
-single-view TTO and the evaluation views are ``benchmarks.bench_denoiser_selection``'s; scores
-after each round at every third view after the input, each object's row kept under
-``runs/denoise/rounds/<denoiser>/`` (a rerun or a larger ``--objects`` scores only what is
+finetunes on them and the input photo (``DenoiseConfig(rounds=1)`` applied again and again, at
+the default input share or ``--input-share``), so a later round starts from a cleaner NeRF. The
+objects, their cached single-view TTO and the evaluation views are
+``benchmarks.bench_denoiser_selection``'s; scores after each round at every third view after the
+input, each object's row kept under ``runs/denoise/rounds/<variant>/`` (the denoiser's name, with
+the share when it is not the default; a rerun or a larger ``--objects`` scores only what is
 missing). ``--part K --parts N`` runs every N-th object (one process a core) and ``--merge``
-writes ``benchmarks/results/denoise_rounds_<denoiser>_<N>objects.json`` (``denoise_rounds.json``
+writes ``benchmarks/results/denoise_rounds_<variant>_<N>objects.json`` (``denoise_rounds.json``
 for the study that chose the number of rounds, ``STUDY``).
 """
 
@@ -33,8 +34,8 @@ from benchmarks.bench_denoiser_selection import (
 from benchmarks.common import ROOT, write_result
 
 ROWS = ROOT / "runs" / "denoise" / "rounds"
-# the denoiser the number of rounds was chosen with (shipped then) on the first development objects:
-# that study is denoise_rounds.json
+# the study that chose the number of rounds (the shipped denoiser, the first development objects,
+# three rounds) keeps the name denoise_rounds.json
 STUDY = ("denoiser-tto", FIRST_OBJECTS, 3)
 
 
