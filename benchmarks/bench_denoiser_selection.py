@@ -39,6 +39,11 @@ CANDIDATES = {
 }
 
 
+def train_command(name: str) -> str:
+    """The ``hypnerf train-denoiser`` command line that makes the candidate ``name`` (paths from the checkout)."""
+    return f"hypnerf train-denoiser --run {RUN.relative_to(ROOT)} --data {DATA.relative_to(ROOT)} --out runs/denoise/{name} " + CANDIDATES[name][1]
+
+
 def ensure_candidate(name: str) -> Path:
     """The candidate's folder, trained first (one thread) when it holds no denoiser."""
     folder = ROOT / "runs" / "denoise" / name
@@ -169,8 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         "variants": {**{f"{SHIPPED} input share {share:g}": f"the shipped denoiser, the input photo {share:.0%} of the finetune views"
                         for share in INPUT_SHARES if SHIPPED in denoisers},
                      "input photo alone": "the same finetune on the input photo alone (no denoised views): the control"},
-        "train_commands": {name: f"hypnerf train-denoiser --run {RUN.relative_to(ROOT)} --data {DATA.relative_to(ROOT)} --out runs/denoise/{name} "
-                                 + CANDIDATES[name][1] for name in denoisers},
+        "train_commands": {name: train_command(name) for name in denoisers},
         "evaluated_at": "every third view after the input (views 1, 4, 7, ...)", "mean": summary, "rows": rows,
     })
     return 0

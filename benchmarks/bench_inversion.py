@@ -18,14 +18,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.bench_denoiser_selection import SHIPPED, train_command
 from benchmarks.common import RESULTS, ROOT, hypnerf, write_result
 
 RUN = ROOT / "runs" / "prior-cpu"
 DATA = ROOT / "data" / "sh3d-chair-variants"
 DENOISER = ROOT / "runs" / "denoise" / "denoiser"
 # denoisers trained with TTO pairs besides the shipped one's pairs, each a further table row
-SHIPPED_TRAIN = ("hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants --out runs/denoise/denoiser-tto "
-                 "--steps 3000 --instances 0 --tto-objects 12 --tto-views 24")
+SHIPPED_TRAIN = train_command(SHIPPED)
 DENOISER_VARIANTS = {
     "tto_denoise_val_tto": ("denoiser-tto", SHIPPED_TRAIN),
     "tto_denoise_inputs": ("denoiser-tto", SHIPPED_TRAIN),
@@ -34,8 +34,7 @@ DENOISER_VARIANTS = {
     "tto_denoise_aug_tto": ("denoiser-tto-aug", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
                             "--out runs/denoise/denoiser-tto-aug --steps 3000 --instances 0 --tto-objects 24 --tto-views 24 "
                             "--tto-data data/sh3d-chair-augmented"),
-    "tto_denoise_inputs3": ("denoiser-tto-inputs3", "hypnerf train-denoiser --run runs/prior-cpu --data data/sh3d-chair-variants "
-                            "--out runs/denoise/denoiser-tto-inputs3 --steps 3000 --instances 0 --tto-objects 12 --tto-views 24 --tto-inputs 3"),
+    "tto_denoise_inputs3": ("denoiser-tto-inputs3", train_command("denoiser-tto-inputs3")),
 }
 # rows whose denoise-and-finetune settings differ from the defaults: their evaluation's arguments
 ROW_EVAL_ARGS = {"tto_denoise_rounds3": ("--denoise-rounds", "3")}
