@@ -640,14 +640,20 @@ def denoise_section(data: dict) -> list[str]:
             "Figure: `benchmarks/results/denoise.png`.", ""]
 
 
+def development_floor(data: dict) -> tuple[float, float]:
+    """Mean full and foreground PSNR of the blank white image over a development-set result's objects
+    (each object's floor is kept in its ``tto`` row)."""
+    floors = [row["tto"] for row in data["rows"].values()]
+    return sum(f["floor_psnr"] for f in floors) / len(floors), sum(f["floor_psnr_fg"] for f in floors) / len(floors)
+
+
 def denoiser_selection_section(data: dict) -> list[str]:
     tto = data["mean"]["tto"]
 
     def cells(q: dict) -> list[str]:
         return [f"{q['psnr']:.2f} / {q['psnr_fg']:.2f}"]
 
-    floors = [row["tto"] for row in data["rows"].values()]
-    floor = (sum(f["floor_psnr"] for f in floors) / len(floors), sum(f["floor_psnr_fg"] for f in floors) / len(floors))
+    floor = development_floor(data)
     rows = [["blank white image (floor)", f"{floor[0]:.2f} / {floor[1]:.2f}", "", ""], ["TTO (no denoiser)", f"{tto['psnr']:.2f} / {tto['psnr_fg']:.2f}", "", ""]]
     gains = {}
     for name, label in data["candidates"].items():
@@ -675,8 +681,7 @@ def denoiser_selection_section(data: dict) -> list[str]:
 
 def denoise_rounds_section(data: dict) -> list[str]:
     mean, tto = data["mean"], data["mean"]["tto"]
-    floors = [row["tto"] for row in data["rows"].values()]
-    floor = (sum(f["floor_psnr"] for f in floors) / len(floors), sum(f["floor_psnr_fg"] for f in floors) / len(floors))
+    floor = development_floor(data)
     seconds = {stage: sum(r[stage]["round_s"] for r in data["rows"].values()) / len(data["rows"]) for stage in mean if stage != "tto"}
     rows = [["blank white image (floor)", f"{floor[0]:.2f} / {floor[1]:.2f}", "", "", ""],
             ["TTO", f"{tto['psnr']:.2f} / {tto['psnr_fg']:.2f}", "", "", ""]]
@@ -699,8 +704,10 @@ def denoiser_comparison_section(data: dict, baseline: dict | None) -> list[str]:
     if baseline is None or set(baseline["objects"]) != set(data["objects"]):
         return []
     stages = [s for s in data["mean"] if s in baseline["mean"]]
-    rows = [[stage, *(f"{d['mean'][stage]['psnr']:.2f} / {d['mean'][stage]['psnr_fg']:.2f}" for d in (baseline, data)),
-             f"{data['mean'][stage]['psnr_fg'] - baseline['mean'][stage]['psnr_fg']:+.2f}"] for stage in stages]
+    floor = development_floor(data)
+    rows = [["blank white image (floor)", *[f"{floor[0]:.2f} / {floor[1]:.2f}"] * 2, ""]]
+    rows += [[stage, *(f"{d['mean'][stage]['psnr']:.2f} / {d['mean'][stage]['psnr_fg']:.2f}" for d in (baseline, data)),
+              f"{data['mean'][stage]['psnr_fg'] - baseline['mean'][stage]['psnr_fg']:+.2f}"] for stage in stages]
     last = stages[-1]
     differences = {o: data["rows"][o][last]["psnr_fg"] - baseline["rows"][o][last]["psnr_fg"] for o in data["objects"]}
     per_object = [[o, f"{baseline['rows'][o][last]['psnr_fg']:.2f}", f"{data['rows'][o][last]['psnr_fg']:.2f}", f"{d:+.2f}"]
@@ -727,7 +734,8 @@ def input_share_section(data: dict) -> list[str]:
     if len(runs) < 2:
         return []
     last = f"rounds {data['rounds']}"
-    rows = []
+    floor = development_floor(data)
+    rows = [["blank white image (floor)", f"{floor[0]:.2f} / {floor[1]:.2f}", "", "", ""]]
     for run in runs:
         differences = [run["rows"][o][last]["psnr_fg"] - data["rows"][o][last]["psnr_fg"] for o in data["objects"]]
         rows.append([f"{run['input_share']:g}", f"{run['mean'][last]['psnr']:.2f} / {run['mean'][last]['psnr_fg']:.2f}",
