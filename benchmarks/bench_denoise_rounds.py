@@ -3,11 +3,12 @@
 Each round renders the ring poses of the NeRF the round before finetuned, denoises them with the
 shipped denoiser (or another of ``bench_denoiser_selection``'s candidates, ``--denoiser``) and
 finetunes on them and the input photo (``DenoiseConfig(rounds=1)`` applied again and again, at
-the default input share or ``--input-share``), so a later round starts from a cleaner NeRF. The
+the default input share or ``--input-share``, the input photo mirrored too with
+``--mirror-inputs``), so a later round starts from a cleaner NeRF. The
 objects, their cached single-view TTO and the evaluation views are
 ``benchmarks.bench_denoiser_selection``'s; scores after each round at every third view after the
 input, each object's row kept under ``runs/denoise/rounds/<variant>/`` (the denoiser's name, with
-the share when it is not the default; a rerun or a larger ``--objects`` scores only what is
+the share when it is not the default and ``_mirror`` with the mirrored photo; a rerun or a larger ``--objects`` scores only what is
 missing). ``--part K --parts N`` runs every N-th object (one process a core) and ``--merge``
 writes ``benchmarks/results/denoise_rounds_<variant>_<N>objects.json`` (``denoise_rounds.json``
 for the study that chose the number of rounds, ``STUDY``).
@@ -39,9 +40,10 @@ ROWS = ROOT / "runs" / "denoise" / "rounds"
 STUDY = ("denoiser-tto", FIRST_OBJECTS, 3)
 
 
-def variant(denoiser: str, input_share: float | None) -> str:
-    """The denoiser's name, with the input share when it is not the default."""
-    return denoiser if input_share is None else f"{denoiser}_share{input_share:g}"
+def variant(denoiser: str, input_share: float | None, mirror_inputs: bool = False) -> str:
+    """The denoiser's name, with the input share when it is not the default, and ``_mirror`` when
+    the input photo's mirror image joins the finetune views."""
+    return denoiser + ("" if input_share is None else f"_share{input_share:g}") + ("_mirror" if mirror_inputs else "")
 
 
 def result_name(name: str, objects: int, rounds: int) -> str:
@@ -53,7 +55,8 @@ def row_file(name: str, object_id: str):
     return ROWS / name / f"{object_id}.json"
 
 
-def run_part(objects: list[str], rounds: int, part: int, denoiser_name: str, input_share: float | None = None) -> None:
+def run_part(objects: list[str], rounds: int, part: int, denoiser_name: str, input_share: float | None = None,
+             mirror_inputs: bool = False) -> None:
     """Score each object after each of ``rounds`` rounds, unless its row already holds them."""
     from tqdm import tqdm
 
@@ -66,9 +69,9 @@ def run_part(objects: list[str], rounds: int, part: int, denoiser_name: str, inp
     denoiser, _ = load_denoiser(ensure_candidate(denoiser_name))
     prior = load_prior(RUN)
     field, camera = prior.net.cfg.field, config.from_dict(Intrinsics, prior.meta["camera"])
-    settings = DenoiseConfig(rounds=1, **({} if input_share is None else {"input_share": input_share}))
+    settings = DenoiseConfig(rounds=1, mirror_inputs=mirror_inputs, **({} if input_share is None else {"input_share": input_share}))
     for object_id in tqdm(objects, desc=f"part {part}", unit="object"):
-        path = row_file(variant(denoiser_name, input_share), object_id)
+        path = row_file(variant(denoiser_name, input_share, mirror_inputs), object_id)
         if path.is_file() and f"rounds {rounds}" in json.loads(path.read_text()):
             continue
         inputs, evaluation, params, grid = development_object(prior, object_id)  # inverts the object when its TTO is not cached
@@ -84,12 +87,13 @@ def run_part(objects: list[str], rounds: int, part: int, denoiser_name: str, inp
         path.write_text(json.dumps(row, indent=2))
 
 
-def merge(objects: list[str], rounds: int, command: str, denoiser_name: str, input_share: float | None = None) -> int:
+def merge(objects: list[str], rounds: int, command: str, denoiser_name: str, input_share: float | None = None,
+          mirror_inputs: bool = False) -> int:
     from model.denoise.finetune import DenoiseConfig
 
     rows = {}
     for object_id in objects:
-        path = row_file(variant(denoiser_name, input_share), object_id)
+        path = row_file(variant(denoiser_name, input_share, mirror_inputs), object_id)
         row = json.loads(path.read_text()) if path.is_file() else {}
         if f"rounds {rounds}" not in row:
             print(f"{path} does not hold {rounds} round(s): run the parts first", file=sys.stderr)
@@ -99,10 +103,10 @@ def merge(objects: list[str], rounds: int, command: str, denoiser_name: str, inp
     mean = {stage: {k: sum(r[stage][k] for r in rows.values()) / len(rows) for k in ("psnr", "psnr_fg", "psnr_fg_gt_mask")} for stage in stages}
     for stage in stages[1:]:
         print(f"{stage}: {mean[stage]['psnr'] - mean['tto']['psnr']:+.2f} dB full, {mean[stage]['psnr_fg'] - mean['tto']['psnr_fg']:+.2f} dB foreground over TTO")
-    write_result(result_name(variant(denoiser_name, input_share), len(objects), rounds), {
+    write_result(result_name(variant(denoiser_name, input_share, mirror_inputs), len(objects), rounds), {
         "command": command, "data": str(DEVELOPMENT.relative_to(ROOT)), "objects": objects, "denoiser": denoiser_name,
         "denoiser_pairs": CANDIDATES[denoiser_name][0], "rounds": rounds,
-        "input_share": DenoiseConfig().input_share if input_share is None else input_share,
+        "input_share": DenoiseConfig().input_share if input_share is None else input_share, "mirror_inputs": mirror_inputs,
         "evaluated_at": "every third view after the input (views 1, 4, 7, ...)",
         "round_s_note": "seconds of one round (render, denoise, finetune) with another process on the second core",
         "mean": mean, "rows": rows,
@@ -119,18 +123,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--merge", action="store_true", help="write the result from the parts")
     parser.add_argument("--denoiser", default=SHIPPED, choices=list(CANDIDATES), help="the candidate denoiser (trained when missing)")
     parser.add_argument("--input-share", type=float, help="the input photo's share of the finetune views (default: DenoiseConfig's)")
+    parser.add_argument("--mirror-inputs", action="store_true", help="the input photo's mirror image joins the finetune views")
     args = parser.parse_args(argv)
     from model.prior.io import load_prior
 
     objects = development_objects(load_prior(RUN), args.objects)
     command = (f"python -m benchmarks.bench_denoise_rounds --objects {args.objects} --rounds {args.rounds} --denoiser {args.denoiser}"
-               + ("" if args.input_share is None else f" --input-share {args.input_share:g}"))
+               + ("" if args.input_share is None else f" --input-share {args.input_share:g}")
+               + (" --mirror-inputs" if args.mirror_inputs else ""))
     if args.merge:
         return merge(objects, args.rounds, f"{command} --part K --parts {args.parts} (K = 0..{args.parts - 1}, "
-                     "one process a core), then --merge", args.denoiser, args.input_share)
-    run_part(objects[args.part :: args.parts], args.rounds, args.part, args.denoiser, args.input_share)
+                     "one process a core), then --merge", args.denoiser, args.input_share, args.mirror_inputs)
+    run_part(objects[args.part :: args.parts], args.rounds, args.part, args.denoiser, args.input_share, args.mirror_inputs)
     if args.parts == 1:
-        return merge(objects, args.rounds, command, args.denoiser, args.input_share)
+        return merge(objects, args.rounds, command, args.denoiser, args.input_share, args.mirror_inputs)
     return 0
 
 

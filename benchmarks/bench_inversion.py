@@ -35,9 +35,10 @@ DENOISER_VARIANTS = {
                             "--out runs/denoise/denoiser-tto-aug --steps 3000 --instances 0 --tto-objects 24 --tto-views 24 "
                             "--tto-data data/sh3d-chair-augmented"),
     "tto_denoise_inputs3": ("denoiser-tto-inputs3", train_command("denoiser-tto-inputs3")),
+    "tto_denoise_mirror": ("denoiser-tto", SHIPPED_TRAIN),
 }
 # rows whose denoise-and-finetune settings differ from the defaults: their evaluation's arguments
-ROW_EVAL_ARGS = {"tto_denoise_rounds3": ("--denoise-rounds", "3")}
+ROW_EVAL_ARGS = {"tto_denoise_rounds3": ("--denoise-rounds", "3"), "tto_denoise_mirror": ("--denoise-mirror",)}
 
 
 def generalization(objects: int) -> None:

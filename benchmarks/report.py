@@ -30,6 +30,7 @@ COMMANDS = {
     "denoise_rounds": "OMP_NUM_THREADS=1 python -m benchmarks.bench_denoise_rounds --objects 4 --rounds 3 --denoiser denoiser-tto --part K --parts 2  (K = 0, 1, one process a core), then --merge",
     "denoise_rounds_denoiser-tto_12objects": "OMP_NUM_THREADS=1 python -m benchmarks.bench_denoise_rounds --objects 12 --rounds 2 --denoiser denoiser-tto [--input-share S]  (S = 0.67, 0.8; one process a core)",
     "denoise_rounds_denoiser-tto-inputs3_12objects": "OMP_NUM_THREADS=1 python -m benchmarks.bench_denoise_rounds --objects 12 --rounds 2 --denoiser D  (D = denoiser-tto-inputs3, then denoiser-tto)",
+    "denoise_rounds_denoiser-tto_mirror_12objects": "OMP_NUM_THREADS=1 python -m benchmarks.bench_denoise_rounds --objects 12 --rounds 2 --denoiser denoiser-tto --mirror-inputs --part K --parts 2  (K = 0, 1, one process a core), then --merge",
     "retrieval": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf train-query, then hypnerf eval retrieval --views 2)",
     "text_to_nerf": "OMP_NUM_THREADS=1 python -m benchmarks.bench_query  (hypnerf eval text-to-nerf --prompts 80, again with --seed 1 and --seed 2, and with --no-colour-words)",
     "sampling": "hypnerf eval sampling --run runs/prior-cpu --samples 12 --json benchmarks/results/sampling.json",
@@ -695,14 +696,23 @@ def denoise_rounds_section(data: dict) -> list[str]:
             f"Timing: {data['round_s_note']}.", ""]
 
 
-# a candidate denoiser's rounds on the larger development set -> the denoiser it is compared with there
-DENOISER_COMPARISONS = {"denoise_rounds_denoiser-tto-inputs3_12objects": "denoise_rounds_denoiser-tto_12objects"}
+# a variant's rounds on the larger development set (another denoiser, or the input photo's mirror
+# image in the finetune) -> the run it is compared with there
+DENOISER_COMPARISONS = {"denoise_rounds_denoiser-tto-inputs3_12objects": "denoise_rounds_denoiser-tto_12objects",
+                        "denoise_rounds_denoiser-tto_mirror_12objects": "denoise_rounds_denoiser-tto_12objects"}
+
+
+def rounds_variant(data: dict) -> str:
+    """A development-set rounds run's name: its denoiser, with the mirrored photo when it joined the finetune."""
+    return data["denoiser"] + (" + mirrored photo" if data.get("mirror_inputs") else "")
 
 
 def denoiser_comparison_section(data: dict, baseline: dict | None) -> list[str]:
-    """A denoiser's rounds on the development set beside another's on the same objects."""
+    """A variant's rounds on the development set (another denoiser, or the mirrored input photo)
+    beside another run's on the same objects."""
     if baseline is None or set(baseline["objects"]) != set(data["objects"]):
         return []
+    names = rounds_variant(baseline), rounds_variant(data)
     stages = [s for s in data["mean"] if s in baseline["mean"]]
     floor = development_floor(data)
     rows = [["blank white image (floor)", *[f"{floor[0]:.2f} / {floor[1]:.2f}"] * 2, ""]]
@@ -712,14 +722,21 @@ def denoiser_comparison_section(data: dict, baseline: dict | None) -> list[str]:
     differences = {o: data["rows"][o][last]["psnr_fg"] - baseline["rows"][o][last]["psnr_fg"] for o in data["objects"]}
     per_object = [[o, f"{baseline['rows'][o][last]['psnr_fg']:.2f}", f"{data['rows'][o][last]['psnr_fg']:.2f}", f"{d:+.2f}"]
                   for o, d in differences.items()]
-    return [f"## Denoiser {data['denoiser']} against {baseline['denoiser']} (development set)", "",
-            f"{data['denoiser']}: {data['denoiser_pairs']}. {baseline['denoiser']}: {baseline['denoiser_pairs']}. The same "
-            f"{len(data['objects'])} deformed copies (the first four are the development set above), TTO NeRFs and evaluation views; "
-            "full / foreground PSNR in dB.", "",
-            *_table(["after", baseline["denoiser"], data["denoiser"], "fg difference"], rows), "",
+    if data["denoiser"] != baseline["denoiser"]:
+        title = f"Denoiser {data['denoiser']} against {baseline['denoiser']}"
+        what = f"{data['denoiser']}: {data['denoiser_pairs']}. {baseline['denoiser']}: {baseline['denoiser_pairs']}."
+    else:
+        title = f"The input photo's mirror image in the finetune, {data['rounds']} rounds"
+        what = (f"{data['denoiser']}: {data['denoiser_pairs']}; the input photo makes up {data['input_share']:g} of the finetune views. "
+                f"With the mirrored photo, its mirror image across the scene's symmetry plane (x = the box centre: the image flipped, "
+                "the camera reflected) shares those copies with it.")
+    return [f"## {title} (development set)", "",
+            f"{what} The same {len(data['objects'])} deformed copies (the first four are the development set above), TTO NeRFs and "
+            "evaluation views; full / foreground PSNR in dB.", "",
+            *_table(["after", *names, "fg difference"], rows), "",
             f"Foreground PSNR per object {last} ({sum(d > 0 for d in differences.values())} of {len(differences)} better with "
-            f"{data['denoiser']}):", "",
-            *_table(["object", baseline["denoiser"], data["denoiser"], "difference"], per_object), "",
+            f"{names[1]}):", "",
+            *_table(["object", *names, "difference"], per_object), "",
             *([f"Selection: {data['selection_note']}", ""] if data.get("selection_note") else [])]
 
 

@@ -426,12 +426,41 @@ def test_invert_command_searches_the_pose_then_denoises_and_finetunes(trained, c
     assert main([*command, "--fov", "200"]) != 0 and "--fov is a horizontal field of view" in caplog.text
     assert main([*command, "--pose", str(tmp_path / "pose.json"), "--fov", "40"]) != 0 and "the pose file gives the camera" in caplog.text
     assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-rounds", "0"]) != 0 and "--denoise-rounds must be at least 1" in caplog.text
-    assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-steps", "6", "--denoise-rounds", "2"]) == 0
+    assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-steps", "6", "--denoise-rounds", "2", "--denoise-mirror"]) == 0
     params, grid, _, _, meta = load_nerf(out / "nerf.safetensors")
     assert meta["denoised"] and meta["pose"] == "searched" and grid.fraction > 0
+    assert meta["denoise"]["rounds"] == 2 and meta["denoise"]["finetune"]["steps"] == 6 and meta["denoise"]["mirror_inputs"] is True
     assert all(torch.isfinite(v).all() for v in params.values())
     pose = json.loads((out / "pose.json").read_text())["frames"][0]
     c2w = np.array(pose["transform_matrix"])
     assert c2w.shape == (4, 4) and np.allclose(c2w[:3, :3] @ c2w[:3, :3].T, np.eye(3), atol=1e-4)
     assert np.linalg.norm(c2w[:3, 3]) > 0.9  # a camera outside the unit box, looking in
     assert len(list((out / "renders").glob("view_*.png"))) == 12 and (out / "mesh.glb").stat().st_size > 0
+
+
+def test_mirrored_inputs_join_the_finetune_views_beside_the_photo(instance, denoiser_run, monkeypatch):
+    import model.denoise.finetune as finetune_module
+    from model.optimize.tto import with_mirrored_views
+
+    prior, params, grid, views = instance
+    denoiser, _ = load_denoiser(denoiser_run[0])
+    seen = []
+    real = finetune_module.finetune_on_views
+
+    def recording(params, field, scene, images, c2w, cameras, cfg, **kwargs):
+        seen.append((images, c2w, cameras))
+        return real(params, field, scene, images, c2w, cameras, cfg, **kwargs)
+
+    monkeypatch.setattr(finetune_module, "finetune_on_views", recording)
+    poses, photo = ring_poses(elevations=(30.0,), per_ring=4), (views.images[:1], views.c2w[:1], views.cameras[:1])
+    for mirror in (False, True):
+        denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser, poses, views.camera,
+                             DenoiseConfig(finetune=tiny_finetune(2), rounds=1, mirror_inputs=mirror), grid=grid, inputs=photo)
+    (plain, plain_c2w, _), (mirrored, mirrored_c2w, cameras) = seen
+    assert plain.shape[0] == mirrored.shape[0] == 8  # 4 denoised views, the inputs repeated to half
+    assert torch.equal(plain[4:], photo[0].float().expand(4, -1, -1, -1))
+    _, mirror_c2w, mirror_cameras = with_mirrored_views(*photo, prior.scene)
+    # the photo and its mirror image share the copies: the flipped image seen by the reflected camera
+    assert torch.equal(mirrored[4::2], photo[0].float().expand(2, -1, -1, -1))
+    assert torch.equal(mirrored[5::2], photo[0].float().flip(2).expand(2, -1, -1, -1))
+    assert torch.allclose(mirrored_c2w[5::2], mirror_c2w[1:].expand(2, -1, -1)) and cameras[5] == mirror_cameras[1]

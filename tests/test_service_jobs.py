@@ -238,6 +238,7 @@ BAD = {
     # 100 + 160 would fit; every round's steps count
     "denoise rounds over the cap": (422, lambda v: {"options": {"steps": 100, "denoise": True, "denoise_steps": 160, "denoise_rounds": 2}}),
     "no denoise round": (422, lambda v: {"options": {"steps": 10, "denoise": True, "denoise_rounds": 0}}),
+    "denoise mirror not a boolean": (422, lambda v: {"options": {"steps": 10, "denoise": True, "denoise_mirror": "sideways"}}),
     "webhook host not allowed": (422, lambda v: {"options": {"steps": 10, "webhook_url": "http://example.com/hook"}}),
     "webhook not http": (422, lambda v: {"options": {"steps": 10, "webhook_url": "file:///etc/passwd"}}),
     "one mask for two images": (422, lambda v: {"masks": [png(32, 32, (255, 255, 255, 255))]}),
@@ -343,7 +344,8 @@ def test_jobs_are_listed_newest_first_with_a_status_filter(client, done):
 
 
 def test_finetune_and_denoise_make_a_finetuned_nerf(client, views):
-    options = {**QUICK, "steps": 6, "finetune_steps": 3, "denoise": True, "denoise_steps": 4, "denoise_rounds": 2}
+    options = {**QUICK, "steps": 6, "finetune_steps": 3, "denoise": True, "denoise_steps": 4, "denoise_rounds": 2,
+               "denoise_mirror": True}
     job = wait_for(client, submit(client, views, options).json()["id"], finished)
     assert job["status"] == "succeeded", job
     assert job["result"]["finetuned"] and job["result"]["steps"] <= 6 + 3 + 2 * 4 and job["progress"]["steps"] == 6 + 3 + 2 * 4

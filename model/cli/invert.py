@@ -41,6 +41,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--denoiser", help="denoiser folder from `hypnerf train-denoiser` (for --denoise)")
     parser.add_argument("--denoise-steps", type=int, help="finetune steps on the denoised views per round (default 300)")
     parser.add_argument("--denoise-rounds", type=int, help="rounds of render, denoise and finetune, each on the NeRF the round before finetuned (default 2)")
+    parser.add_argument("--denoise-mirror", action=argparse.BooleanOptionalAction, default=None,
+                        help="finetune on the input photos' mirror images too (a left-right symmetric object; default: DenoiseConfig's)")
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--mesh-resolution", type=int, default=128)
     parser.set_defaults(func=cmd_invert)
@@ -164,6 +166,8 @@ def cmd_invert(args) -> int:
             if args.denoise_rounds < 1:
                 raise ValueError(f"--denoise-rounds must be at least 1, got {args.denoise_rounds}")
             settings = replace(settings, rounds=args.denoise_rounds)
+        if args.denoise_mirror is not None:
+            settings = replace(settings, mirror_inputs=args.denoise_mirror)
         denoise = denoise_and_finetune_prior(Path(args.denoiser), settings)  # loaded before the long part: a bad folder fails now
     log.info("optimising codes for %d view(s) of %dx%d%s", len(images), images.shape[2], images.shape[1],
              ", searching for the pose" if c2w is None else "")
@@ -190,6 +194,7 @@ def cmd_invert(args) -> int:
     codes = {"shape": result.shape_code.tolist(), "color": result.color_code.tolist(), "init": result.init}
     extra = {"tto": config.to_dict(cfg), "codes": codes, "prior": str(args.run), "wall_s": result.wall_s,
              "finetuned": cfg.finetune_steps > 0, "denoised": denoise is not None, "denoiser": args.denoiser if denoise is not None else None,
+             "denoise": config.to_dict(settings) if denoise is not None else None,
              "pose": "searched" if c2w is None else ("refined" if cfg.refine_pose else "given")}
     log.info("writing renders, turntable and mesh into %s", out)
     paths = write_outputs(out, params, prior.net.cfg.field, grid, prior.scene, cameras[0], extra=extra, mesh_resolution=args.mesh_resolution)
@@ -217,6 +222,8 @@ def register_generalization(eval_sub) -> None:
     gen.add_argument("--fit-steps", type=int, default=500, help="steps of the single-view fit baseline")
     gen.add_argument("--denoiser", help="a denoiser folder from `hypnerf train-denoiser` (adds the tto_denoise row)")
     gen.add_argument("--denoise-rounds", type=int, help="rounds of denoise-and-finetune in the tto_denoise row (default 2)")
+    gen.add_argument("--denoise-mirror", action=argparse.BooleanOptionalAction, default=None,
+                     help="the tto_denoise row's finetune also on the input photo's mirror image (default: DenoiseConfig's)")
     gen.add_argument("--rows", help=f"comma-separated rows to compute (default all of {','.join(ROWS)})")
     gen.set_defaults(func=cmd_eval_generalization)
 
@@ -236,7 +243,8 @@ def cmd_eval_generalization(args) -> int:
     if args.denoise_rounds is not None and args.denoise_rounds < 1:
         print(f"hypnerf eval generalization: error: --denoise-rounds must be at least 1, got {args.denoise_rounds}", file=sys.stderr)
         return 2
-    denoise = DenoiseConfig(**({"rounds": args.denoise_rounds} if args.denoise_rounds else {}))
+    denoise = DenoiseConfig(**({"rounds": args.denoise_rounds} if args.denoise_rounds else {}),
+                            **({"mirror_inputs": args.denoise_mirror} if args.denoise_mirror is not None else {}))
     cfg = GeneralizationConfig(objects=args.objects, input_views=args.views, tto=tto, denoise=denoise, fit_steps=args.fit_steps, rows=rows)
     out = Path(args.json)
     report = generalization(Path(args.run), Path(args.data), cfg, denoiser=Path(args.denoiser) if args.denoiser else None, out=out)

@@ -34,6 +34,7 @@ from model.nerf.renderer import RenderConfig, render_image
 from model.nerf.scene import SceneBox
 from model.optimize.fit import training_rays
 from model.optimize.step import RayBatch, adam_with_decay, mse_to_psnr, photometric_loss
+from model.optimize.tto import with_mirrored_views
 from model.prior.codes import generated_grid
 from model.prior.io import Prior
 
@@ -70,6 +71,11 @@ class DenoiseConfig:
     finetuned: a cleaner NeRF renders views the denoiser cleans further (chosen on the same
     development set, ``benchmarks.bench_denoise_rounds``: +0.68, +0.93 and +0.99 dB foreground over
     TTO after 1, 2 and 3 rounds; a third adds little for another round's time)."""
+
+    mirror_inputs: bool = False
+    """Add each input view mirrored across the plane x = the scene box's centre (the image flipped,
+    seen by the mirrored camera) as a virtual view: a chair is left-right symmetric, so its photo
+    also shows the other side."""
 
     def __post_init__(self):
         if not 0.0 <= self.input_share < 1.0:
@@ -191,7 +197,7 @@ def denoise_and_finetune(
     denoised views are the last round's. ``grid`` is the NeRF's occupancy grid (e.g.
     ``TTOResult.grid``; computed when ``None``). ``inputs`` (the RGBA images ``[n, H, W, 4]``, poses
     ``[n, 4, 4]`` and cameras the NeRF was inverted from) join the finetune views, repeated to make
-    up ``cfg.input_share`` of them. ``progress`` counts steps over all rounds.
+    up ``cfg.input_share`` of them (with their mirror images when ``cfg.mirror_inputs``). ``progress`` counts steps over all rounds.
     """
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or poses.shape[0] < 1:
         raise ValueError(f"poses must be [m, 4, 4] camera-to-world matrices with m >= 1, got {tuple(poses.shape)}")
@@ -199,6 +205,8 @@ def denoise_and_finetune(
     resolution = cfg.finetune.occupancy.resolution
     grid = grid.to(device) if grid is not None else generated_grid(params, field, scene, resolution, seed=cfg.finetune.seed)
     poses = poses.float().to(device)
+    if inputs is not None and cfg.mirror_inputs:
+        inputs = with_mirrored_views(*inputs, scene)
     timings = dict.fromkeys(("render_s", "denoise_s", "finetune_s", "total_s"), 0.0)
     for round_index in range(cfg.rounds):
         began = time.perf_counter()

@@ -172,7 +172,8 @@ def tto_config(options: InversionOptions) -> TTOConfig:
 def denoise_config(options: InversionOptions) -> DenoiseConfig:
     steps = {"steps": options.denoise_steps} if options.denoise_steps is not None else {}
     rounds = {"rounds": options.denoise_rounds} if options.denoise_rounds is not None else {}
-    return DenoiseConfig(finetune=FinetuneConfig(seed=options.seed, progress_every=1, **steps), **rounds)
+    mirror = {"mirror_inputs": options.denoise_mirror} if options.denoise_mirror is not None else {}
+    return DenoiseConfig(finetune=FinetuneConfig(seed=options.seed, progress_every=1, **steps), **rounds, **mirror)
 
 
 def request_digest(request: dict) -> str:

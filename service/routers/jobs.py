@@ -31,7 +31,7 @@ POSES_HELP = ("JSON list, one entry per image, in order: a row-major 4x4 camera-
               "looks down its -Z, +Y up), `{\"c2w\": [[...]], \"fov\": 40}` or `{\"azimuth\": 30, \"elevation\": 20, \"radius\": 2, "
               "\"fov\": 40}` (degrees; radius and fov default to the training camera's). Leave it out for a single image "
               "of unknown pose: the pose is searched on a grid of look-at cameras, then refined with the codes")
-OPTIONS_HELP = "JSON object: steps, finetune_steps, rays_per_step, init, seed, denoise, denoise_steps, denoise_rounds, webhook_url (all optional)"
+OPTIONS_HELP = "JSON object: steps, finetune_steps, rays_per_step, init, seed, denoise, denoise_steps, denoise_rounds, denoise_mirror, webhook_url (all optional)"
 
 
 def get_jobs(request: Request) -> JobSystem:

@@ -240,6 +240,7 @@ class InversionOptions(RequestPart):
     denoise: bool | None = None
     denoise_steps: int | None = Field(None, ge=1)
     denoise_rounds: int | None = Field(None, ge=1)
+    denoise_mirror: bool | None = None
     webhook_url: str | None = None
 
 
