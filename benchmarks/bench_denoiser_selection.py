@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": "python -m benchmarks.bench_denoiser_selection " + " ".join(sys.argv[1:] if argv is None else argv),
         "data": str(DEVELOPMENT.relative_to(ROOT)), "prior_data": str(DATA.relative_to(ROOT)), "objects": objects,
         "candidates": {name: CANDIDATES[name][0] for name in denoisers},
-        "input_share": DenoiseConfig().input_share, "rounds": DenoiseConfig().rounds,
+        "input_share": DenoiseConfig().input_share, "rounds": DenoiseConfig().rounds, "mirror_inputs": DenoiseConfig().mirror_inputs,
         "variants": {**{f"{SHIPPED} input share {share:g}": f"the shipped denoiser, the input photo {share:.0%} of the finetune views"
                         for share in INPUT_SHARES if SHIPPED in denoisers},
                      "input photo alone": "the same finetune on the input photo alone (no denoised views): the control"},

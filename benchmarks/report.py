@@ -314,6 +314,7 @@ GENERALIZATION_ROWS = {
     "tto_denoise_rounds": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects",
     "tto_denoise_rounds3": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects",
     "tto_denoise_inputs3": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects from 3 views each",
+    "tto_denoise_mirror": "TTO + denoise-and-finetune, denoiser also on TTO of 12 validation objects",
 }
 
 
@@ -326,13 +327,10 @@ def _generalization_label(data: dict, row: str) -> str:
     settings = data.get("denoise" if row == "tto_denoise" else f"denoise_{row}") or {}
     with_photo = settings.get("input_share", 0.0) > 0
     rounds = settings.get("rounds", 1)  # rows made before rounds existed ran one
-    shipped = row == SHIPPED_DENOISE_ROW
-    return (label + (", finetuned on the denoised views and the input photo" if with_photo else ", finetuned on the denoised views alone")
+    shipped = row == data.get("shipped_denoise_row")
+    mirrored = " and its mirror image" if with_photo and settings.get("mirror_inputs") else ""
+    return (label + (f", finetuned on the denoised views and the input photo{mirrored}" if with_photo else ", finetuned on the denoised views alone")
             + (f", {rounds} rounds" if rounds > 1 else "") + (" (shipped)" if shipped else ""))
-
-
-# the row of the demo bundle's denoiser with the shipped denoise-and-finetune settings
-SHIPPED_DENOISE_ROW = "tto_denoise_rounds"
 
 
 def generalization_section(data: dict) -> list[str]:
@@ -363,14 +361,17 @@ def generalization_section(data: dict) -> list[str]:
                       + (f" Denoiser: `{data['denoiser_variants'][row]['train_command']}`; rows from a second seeded run whose TTO row "
                          f"reproduced the table's ({data['tto_reproduced_psnr_fg_' + row]:.2f} dB fg)." if row in data.get("denoiser_variants", {}) else "")
                       + (f" {data['row_notes'][row]}" if row in data.get("row_notes", {}) else ""), ""]
-    if SHIPPED_DENOISE_ROW in data["rows"]:
+    if data.get("shipped_denoise_row") in data["rows"]:
         lines += ["The demo bundle ships the denoiser and settings of the row marked shipped (its TTO pairs come from validation objects, "
                   "never the test split). The denoiser was chosen over the paper's-pairs and deformed-copy denoisers on this table, so its "
                   "rows are optimistic by that choice; against further candidates it was kept, and the input photo's share of the finetune "
-                  "views and the number of rounds were chosen, on a development set of deformed copies (Choosing the denoiser, Rounds of "
-                  "denoise-and-finetune and Denoiser denoiser-tto-inputs3 against denoiser-tto, below).", ""]
+                  "views, the number of rounds and the photo's mirror image were chosen on a development set of deformed copies (the "
+                  "mirror image before its row here was run; Choosing the denoiser, Rounds of denoise-and-finetune, Denoiser denoiser-tto-inputs3 against "
+                  "denoiser-tto and The input photo's mirror image in the finetune, below).", ""]
     lines += ["Renders: `benchmarks/results/generalization.png` (per object: input view and ground truth at three evaluation poses, "
-              "then one line per row in the order of the table).", ""]
+              f"then one line per row of its first run: {', '.join(data['config']['rows'])})"
+              + (f"; the shipped row beside TTO: `{data['shipped_denoise_figure']}` (the same layout, from its second run)"
+                 if data.get("shipped_denoise_figure") else "") + ".", ""]
     return lines
 
 
@@ -628,8 +629,9 @@ def denoise_section(data: dict) -> list[str]:
             f"({data['training']['wall_s']:.0f} s, {data['training']['threads']} thread) on {data['training']['pairs']} (render, ground truth) pairs: "
             f"`{data['train_command']}` (the prior's renders of its instances, and TTO results of validation chairs rendered at their "
             "training views; the bundle ships it). Denoise-and-finetune renders 16 fixed ring poses, denoises them and finetunes the NeRF's "
-            "own parameters on them; an inverted NeRF's input photo joins them, repeated to half of the finetune views (the training "
-            "instances have no photo)"
+            "own parameters on them; an inverted NeRF's input photo joins them"
+            + (" with its mirror image" if data.get("denoise", {}).get("mirror_inputs") else "")
+            + ", repeated to half of the finetune views (the training instances have no photo)"
             + (f"; {data['denoise']['rounds']} rounds, each on the NeRF the round before finetuned. " if data.get("denoise", {}).get("rounds", 1) > 1 else ". ")
             + f"Figures are full / foreground / ground-truth-mask PSNR in dB ({data['foreground']}).", "",
             *_table(["case", "before", "after"], rows), "",
@@ -673,6 +675,7 @@ def denoiser_selection_section(data: dict) -> list[str]:
             "The denoised-images column scores the denoiser's output at those views; the last two columns the NeRF finetuned on "
             "denoised views at fixed ring poses"
             + (f" with the input photo repeated to {data['input_share']:.0%} of the finetune views" if data.get("input_share") else "")
+            + (" (with its mirror image)" if data.get("input_share") and data.get("mirror_inputs") else "")
             + f", {data.get('rounds', 1)} round(s).", "",
             *_table(["denoiser", "denoised images", "denoise-and-finetune", "fg gain over TTO"], rows), "",
             f"Best foreground gain: {best} ({gains[best]:+.2f} dB, target +0.8: {'met' if gains[best] >= 0.8 else 'not met'}). "

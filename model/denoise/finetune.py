@@ -72,10 +72,12 @@ class DenoiseConfig:
     development set, ``benchmarks.bench_denoise_rounds``: +0.68, +0.93 and +0.99 dB foreground over
     TTO after 1, 2 and 3 rounds; a third adds little for another round's time)."""
 
-    mirror_inputs: bool = False
+    mirror_inputs: bool = True
     """Add each input view mirrored across the plane x = the scene box's centre (the image flipped,
-    seen by the mirrored camera) as a virtual view: a chair is left-right symmetric, so its photo
-    also shows the other side."""
+    seen by the mirrored camera) as a virtual view, sharing the inputs' copies: a chair is
+    left-right symmetric, so its photo also shows the other side (chosen on the same development
+    set, two rounds: +0.20 dB foreground, 11 of 12 objects better; turn it off for an object that
+    is not symmetric)."""
 
     def __post_init__(self):
         if not 0.0 <= self.input_share < 1.0:
