@@ -426,6 +426,7 @@ def test_invert_command_searches_the_pose_then_denoises_and_finetunes(trained, c
     assert main([*command, "--fov", "200"]) != 0 and "--fov is a horizontal field of view" in caplog.text
     assert main([*command, "--pose", str(tmp_path / "pose.json"), "--fov", "40"]) != 0 and "the pose file gives the camera" in caplog.text
     assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-rounds", "0"]) != 0 and "--denoise-rounds must be at least 1" in caplog.text
+    assert main([*command, "--no-denoise-mirror"]) != 0 and "--denoise-mirror: denoise-and-finetune settings, used only with --denoise" in caplog.text
     assert main([*command, "--denoise", "--denoiser", str(denoiser_run[0]), "--denoise-steps", "6", "--denoise-rounds", "2", "--denoise-mirror"]) == 0
     params, grid, _, _, meta = load_nerf(out / "nerf.safetensors")
     assert meta["denoised"] and meta["pose"] == "searched" and grid.fraction > 0

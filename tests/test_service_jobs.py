@@ -238,6 +238,7 @@ BAD = {
     # 100 + 160 would fit; every round's steps count
     "denoise rounds over the cap": (422, lambda v: {"options": {"steps": 100, "denoise": True, "denoise_steps": 160, "denoise_rounds": 2}}),
     "no denoise round": (422, lambda v: {"options": {"steps": 10, "denoise": True, "denoise_rounds": 0}}),
+    "denoise settings without denoise": (422, lambda v: {"options": {"steps": 10, "denoise_mirror": False}}),
     "denoise mirror not a boolean": (422, lambda v: {"options": {"steps": 10, "denoise": True, "denoise_mirror": "sideways"}}),
     "webhook host not allowed": (422, lambda v: {"options": {"steps": 10, "webhook_url": "http://example.com/hook"}}),
     "webhook not http": (422, lambda v: {"options": {"steps": 10, "webhook_url": "file:///etc/passwd"}}),

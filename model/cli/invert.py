@@ -137,6 +137,10 @@ def cmd_invert(args) -> int:
         raise ValueError("--init query starts from the query network's guess; give its folder with --query (from `hypnerf train-query`)")
     if args.denoise and not args.denoiser:
         raise ValueError("--denoise needs a denoiser: give its folder with --denoiser (from `hypnerf train-denoiser`)")
+    denoise_options = [flag for flag, value in (("--denoise-steps", args.denoise_steps), ("--denoise-rounds", args.denoise_rounds),
+                                                ("--denoise-mirror", args.denoise_mirror)) if value is not None]
+    if denoise_options and not args.denoise:
+        raise ValueError(f"{', '.join(denoise_options)}: denoise-and-finetune settings, used only with --denoise; add --denoise (and --denoiser)")
     if args.pose and args.fov is not None:
         raise ValueError("--fov is for an image without a pose file; the pose file gives the camera (camera_angle_x or fl_x)")
     prior = load_prior(Path(args.run), default_device())

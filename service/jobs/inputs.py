@@ -76,6 +76,10 @@ def parse_options(text: str | None, settings: Settings, resident: Resident) -> I
         errors = [{**e, "field": f"options.{e['field']}", "loc": ["body", "options", *e["loc"]]} for e in field_errors(exc.errors())]
         raise ProblemError(422, "Invalid inversion options", "; ".join(f"{e['field']}: {e['message']}" for e in errors[:5]),
                            kind="validation", errors=errors) from None
+    unused = [name for name in ("denoise_steps", "denoise_rounds", "denoise_mirror") if getattr(options, name) is not None]
+    if unused and not options.denoise:
+        raise _invalid(f"options.{unused[0]}", f"{', '.join(unused)}: denoise-and-finetune settings, used only with "
+                       "\"denoise\": true; add it or leave them out", "Denoise settings without denoise")
     cap = settings.limits.max_tto_steps
     total = (options.steps or TTOConfig.steps) + options.finetune_steps + (denoise_config(options).total_steps if options.denoise else 0)
     if total > cap:
