@@ -3,13 +3,13 @@
 Each round renders the ring poses of the NeRF the round before finetuned, denoises them with the
 shipped denoiser (or another of ``bench_denoiser_selection``'s candidates, ``--denoiser``) and
 finetunes on them and the input photo (``DenoiseConfig(rounds=1)`` applied again and again, at
-the default input share or ``--input-share``, the input photo mirrored too with
-``--mirror-inputs``), so a later round starts from a cleaner NeRF. The
-objects, their cached single-view TTO and the evaluation views are
-``benchmarks.bench_denoiser_selection``'s; scores after each round at every third view after the
-input, each object's row kept under ``runs/denoise/rounds/<variant>/`` (the denoiser's name, with
-the share when it is not the default and ``_mirror`` with the mirrored photo; a rerun or a larger ``--objects`` scores only what is
-missing). ``--part K --parts N`` runs every N-th object (one process a core) and ``--merge``
+the default input share or ``--input-share``), so a later round starts from a cleaner NeRF. The
+photo's mirror image joins it only with ``--mirror-inputs``: the studies here were run without it,
+before it became ``DenoiseConfig``'s default. The objects, their cached single-view TTO and the
+evaluation views are ``benchmarks.bench_denoiser_selection``'s; scores after each round at every
+third view after the input, each object's row kept under ``runs/denoise/rounds/<variant>/`` (the
+denoiser's name, with the share when it is not the default and ``_mirror`` with the mirrored
+photo; a rerun or a larger ``--objects`` scores only what is missing). ``--part K --parts N`` runs every N-th object (one process a core) and ``--merge``
 writes ``benchmarks/results/denoise_rounds_<variant>_<N>objects.json`` (``denoise_rounds.json``
 for the study that chose the number of rounds, ``STUDY``).
 """
