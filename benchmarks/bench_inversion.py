@@ -59,11 +59,11 @@ def generalization(objects: int) -> None:
     report = json.loads(table.read_text())
     if "tto_denoise" not in report["rows"] and denoiser:
         _merge_denoise_row(report, "tto_denoise", DENOISER, RESULTS.parent.parent / "runs" / "generalization-denoise.json")
-    for row, (folder, train_command) in DENOISER_VARIANTS.items():
+    for row, (folder, command) in DENOISER_VARIANTS.items():
         if row not in report["rows"] and (DENOISER.parent / folder / "denoiser.safetensors").is_file():
             _merge_denoise_row(report, row, DENOISER.parent / folder, RESULTS.parent.parent / "runs" / f"generalization-{row}.json",
                                ROW_EVAL_ARGS.get(row, ()))
-            report.setdefault("denoiser_variants", {})[row] = {"train_command": train_command}
+            report.setdefault("denoiser_variants", {})[row] = {"train_command": command}
     side_figure = RESULTS.parent.parent / "runs" / f"generalization-{SHIPPED_DENOISE_ROW}.png"
     if SHIPPED_DENOISE_ROW in report["rows"] and side_figure.is_file():
         shutil.copyfile(side_figure, SHIPPED_DENOISE_FIGURE)

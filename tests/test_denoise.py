@@ -384,28 +384,31 @@ def test_each_round_denoises_and_finetunes_the_nerf_the_round_before_finetuned(i
 
 def test_input_views_make_up_their_share_of_the_finetune_views(instance, denoiser_run):
     from model.denoise.finetune import with_inputs
+    from model.optimize.step import RayBatch
 
     prior, params, grid, views = instance
-    denoised, poses = torch.rand(16, 8, 8, 4), ring_poses()
-    photo, photo_pose = torch.rand(1, 8, 8, 4), poses[:1] * 1.0
-    cameras = [views.camera] * 16
-    assert with_inputs(denoised, poses, cameras, None, 0.5)[0] is denoised
-    assert with_inputs(denoised, poses, cameras, (photo, photo_pose, [views.camera]), 0.0)[0] is denoised
-    images, c2w, cams = with_inputs(denoised, poses, cameras, (photo, photo_pose, [views.camera]), 0.5)
-    assert images.shape[0] == c2w.shape[0] == len(cams) == 32 and torch.equal(images[16:], photo.expand(16, -1, -1, -1))
-    # two input views share the copies; a tiny share still keeps one copy of each
-    two = (photo.repeat(2, 1, 1, 1), photo_pose.repeat(2, 1, 1), [views.camera] * 2)
-    assert with_inputs(denoised, poses, cameras, two, 0.5)[0].shape[0] == 32
-    assert with_inputs(denoised, poses, cameras, two, 0.01)[0].shape[0] == 18
-    with pytest.raises(ValueError, match="as many poses and cameras"):
-        with_inputs(denoised, poses, cameras, (photo, photo_pose.repeat(2, 1, 1), [views.camera]), 0.5)
+
+    def pool(count: int, fill: float = 0.0) -> RayBatch:
+        return RayBatch(torch.full((count, 3), fill), torch.full((count, 3), fill), torch.full((count, 4), fill))
+
+    denoised, photo = pool(16 * 64), pool(64, 1.0)  # 16 denoised views, one photo of the same size
+    assert with_inputs(denoised, None, 0.5) is denoised and with_inputs(denoised, photo, 0.0) is denoised
+    rays = with_inputs(denoised, photo, 0.5)
+    assert len(rays) == 32 * 64 and torch.equal(rays.rgba[: 16 * 64], denoised.rgba) and bool((rays.rgba[16 * 64 :] == 1).all())
+    # a photo of another size weighs by its share, not its pixel count; a tiny share keeps one copy
+    assert len(with_inputs(denoised, pool(256, 1.0), 0.5)) == 32 * 64
+    assert len(with_inputs(denoised, pool(128), 0.01)) == 16 * 64 + 128
     with pytest.raises(ValueError, match="input_share"):
         DenoiseConfig(input_share=1.0)
     # end to end: the NeRF's own training view joins the denoised ones
     denoiser, _ = load_denoiser(denoiser_run[0])
-    result = denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser, ring_poses(elevations=(30.0,), per_ring=2), views.camera,
+    poses = ring_poses(elevations=(30.0,), per_ring=2)
+    result = denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser, poses, views.camera,
                                   DenoiseConfig(finetune=tiny_finetune(5)), grid=grid, inputs=(views.images[:1], views.c2w[:1], views.cameras[:1]))
     assert all(torch.isfinite(v).all() for v in result.params.values()) and result.grid.fraction > 0
+    with pytest.raises(ValueError, match="as many poses and cameras"):
+        denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser, poses, views.camera, DenoiseConfig(finetune=tiny_finetune(1)),
+                             grid=grid, inputs=(views.images[:1], views.c2w[:2], views.cameras[:1]))
 
 
 def test_invert_command_searches_the_pose_then_denoises_and_finetunes(trained, chairs, denoiser_run, tmp_path, caplog):
@@ -441,27 +444,48 @@ def test_invert_command_searches_the_pose_then_denoises_and_finetunes(trained, c
 
 def test_mirrored_inputs_join_the_finetune_views_beside_the_photo(instance, denoiser_run, monkeypatch):
     import model.denoise.finetune as finetune_module
+    from model.optimize.fit import training_rays
     from model.optimize.tto import with_mirrored_views
 
     prior, params, grid, views = instance
     denoiser, _ = load_denoiser(denoiser_run[0])
     seen = []
-    real = finetune_module.finetune_on_views
+    real = finetune_module.finetune_on_rays
 
-    def recording(params, field, scene, images, c2w, cameras, cfg, **kwargs):
-        seen.append((images, c2w, cameras))
-        return real(params, field, scene, images, c2w, cameras, cfg, **kwargs)
+    def recording(params, field, scene, rays, cfg, **kwargs):
+        seen.append(rays)
+        return real(params, field, scene, rays, cfg, **kwargs)
 
-    monkeypatch.setattr(finetune_module, "finetune_on_views", recording)
+    monkeypatch.setattr(finetune_module, "finetune_on_rays", recording)
     poses, photo = ring_poses(elevations=(30.0,), per_ring=4), (views.images[:1], views.c2w[:1], views.cameras[:1])
     for mirror in (False, True):
         denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser, poses, views.camera,
                              DenoiseConfig(finetune=tiny_finetune(2), rounds=1, mirror_inputs=mirror), grid=grid, inputs=photo)
-    (plain, plain_c2w, _), (mirrored, mirrored_c2w, cameras) = seen
-    assert plain.shape[0] == mirrored.shape[0] == 8  # 4 denoised views, the inputs repeated to half
-    assert torch.equal(plain[4:], photo[0].float().expand(4, -1, -1, -1))
-    _, mirror_c2w, mirror_cameras = with_mirrored_views(*photo, prior.scene)
+    plain, mirrored = seen
+    pixels = views.height * views.width
+    assert len(plain) == len(mirrored) == 8 * pixels  # 4 denoised views, the inputs repeated to half
+    photo_rays = training_rays(finetune_module.posed_views(*photo, prior.scene, "cpu"), "cpu")
+    assert torch.equal(plain.rgba[4 * pixels :], photo_rays.rgba.repeat(4, 1))
     # the photo and its mirror image share the copies: the flipped image seen by the reflected camera
-    assert torch.equal(mirrored[4::2], photo[0].float().expand(2, -1, -1, -1))
-    assert torch.equal(mirrored[5::2], photo[0].float().flip(2).expand(2, -1, -1, -1))
-    assert torch.allclose(mirrored_c2w[5::2], mirror_c2w[1:].expand(2, -1, -1)) and cameras[5] == mirror_cameras[1]
+    both = training_rays(finetune_module.posed_views(*with_mirrored_views(*photo, prior.scene), prior.scene, "cpu"), "cpu")
+    assert torch.equal(both.rgba[pixels:], photo[0][0].flip(1).reshape(-1, 4))
+    for field_name in ("origins", "directions", "rgba"):
+        assert torch.allclose(getattr(mirrored, field_name)[4 * pixels :], getattr(both, field_name).repeat(2, 1))
+
+
+def test_an_input_photo_of_another_size_joins_the_finetune_views(instance, denoiser_run):
+    from model.nerf.rays import Intrinsics
+
+    prior, params, grid, views = instance
+    denoiser, _ = load_denoiser(denoiser_run[0])
+    # a non-square photo at another resolution than the ring renders, its camera scaled with it
+    height, width = views.height + 8, views.width - 6
+    photo = torch.nn.functional.interpolate(views.images[:1].permute(0, 3, 1, 2), size=(height, width), mode="bilinear").permute(0, 2, 3, 1)
+    camera = views.cameras[0]
+    scaled = Intrinsics(width, height, camera.fx * width / camera.width, camera.fy * height / camera.height,
+                        camera.cx * width / camera.width, camera.cy * height / camera.height)
+    for mirror in (False, True):
+        result = denoise_and_finetune(params, prior.net.cfg.field, prior.scene, denoiser, ring_poses(elevations=(30.0,), per_ring=2), views.camera,
+                                      DenoiseConfig(finetune=tiny_finetune(5), rounds=1, mirror_inputs=mirror), grid=grid,
+                                      inputs=(photo, views.c2w[:1], [scaled]))
+        assert all(torch.isfinite(v).all() for v in result.params.values()) and result.grid.fraction > 0

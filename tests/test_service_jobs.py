@@ -354,6 +354,18 @@ def test_finetune_and_denoise_make_a_finetuned_nerf(client, views):
     assert nerf["codes"] is None and nerf["source"] == {"inversion": job["id"], "finetuned": True}
 
 
+def test_a_photo_of_another_size_is_denoised_and_finetuned(client, views):
+    from PIL import Image
+
+    original = Image.open(io.BytesIO(views[0][0]))
+    photo = io.BytesIO()
+    original.resize((original.width + 8, original.height - 6)).save(photo, format="PNG")  # non-square, not the bundle camera's size
+    options = {**QUICK, "steps": 4, "denoise": True, "denoise_steps": 3, "denoise_rounds": 1}
+    job = wait_for(client, submit(client, views, options, images=[photo.getvalue()], poses=[views[0][1]]).json()["id"], finished)
+    assert job["status"] == "succeeded", job
+    assert job["result"]["finetuned"] and client.get(f"/v1/nerfs/{job['result']['nerf_id']}/render", params={"width": 16, "height": 16}).status_code == 200
+
+
 def test_one_image_without_a_pose_is_inverted_with_a_pose_search(client, views):
     job = wait_for(client, submit(client, views, {**QUICK, "steps": 4}, poses=False, images=[views[0][0]]).json()["id"], finished)
     assert job["status"] == "succeeded", job

@@ -140,11 +140,33 @@ def finetune_on_views(
     its density when ``None``). ``progress`` is called every ``cfg.progress_every`` steps with
     ``{"step", "steps", "loss", "psnr", "anchor", "elapsed_s"}``.
     """
+    device = next(iter(params.values())).device
+    rays = training_rays(posed_views(images, c2w, cameras, scene, device), device)
+    return finetune_on_rays(params, field, scene, rays, cfg, grid=grid, progress=progress)
+
+
+def posed_views(images: torch.Tensor, c2w: torch.Tensor, cameras: Sequence[Intrinsics], scene: SceneBox, device) -> Views:
+    """Checked finetune views on ``device``: RGBA ``images [V, H, W, 4]``, poses ``[V, 4, 4]``, one camera each."""
     validate_views(images, c2w)
     if images.shape[-1] != 4 or c2w.shape[1:] != (4, 4):
         raise ValueError("finetune views must be RGBA [V, H, W, 4] (alpha all 1 when there is no mask) with [V, 4, 4] poses")
     if len(cameras) != images.shape[0]:
         raise ValueError(f"need one camera per view, got {len(cameras)} for {images.shape[0]} views")
+    return Views(images.float().to(device), c2w.float().to(device), list(cameras), scene, [f"view_{i}" for i in range(len(cameras))], None)
+
+
+def finetune_on_rays(
+    params: FieldParams,
+    field: Field,
+    scene: SceneBox,
+    rays: RayBatch,
+    cfg: FinetuneConfig,
+    *,
+    grid: OccupancyGrid | None = None,
+    progress: Callable[[dict], None] | None = None,
+) -> FieldParams:
+    """:func:`finetune_on_views` on a pool of rays ``[P, 3]`` with RGBA targets ``[P, 4]`` (the
+    pixels of views of any sizes), drawn uniformly each step."""
     if cfg.steps < 0 or cfg.rays_per_step < 1:
         raise ValueError("finetune steps must be >= 0 and rays_per_step >= 1")
     device = next(iter(params.values())).device
@@ -158,9 +180,7 @@ def finetune_on_views(
     start = {k: v.detach().clone() for k, v in params.items()}
     params = {k: v.detach().clone().requires_grad_() for k, v in params.items()}
     optimizer, scheduler = adam_with_decay(list(params.values()), lr=cfg.lr, steps=cfg.steps, final_lr_factor=cfg.final_lr_factor)
-    views = Views(images.float().to(device), c2w.float().to(device), list(cameras), scene, [f"view_{i}" for i in range(len(cameras))], None)
-    rays = training_rays(views, device)
-    random_background = views.has_alpha
+    random_background = bool((rays.rgba[:, 3] < 1.0).any())  # some pixel has a mask
     began = time.perf_counter()
     for step in range(cfg.steps):
         maintained.step(step, world_density(params, field, scene))
@@ -194,12 +214,13 @@ def denoise_and_finetune(
     progress: Callable[[dict], None] | None = None,
 ) -> DenoiseResult:
     """Render ``params`` (batch 1) at ``poses [m, 4, 4]`` with ``camera``, denoise the renders and
-    finetune the NeRF on them (``finetune_on_views``), ``cfg.rounds`` times, each round starting
+    finetune the NeRF on them (``finetune_on_rays``), ``cfg.rounds`` times, each round starting
     from the one before; the result's grid comes from the finetuned density, its renders and
     denoised views are the last round's. ``grid`` is the NeRF's occupancy grid (e.g.
     ``TTOResult.grid``; computed when ``None``). ``inputs`` (the RGBA images ``[n, H, W, 4]``, poses
-    ``[n, 4, 4]`` and cameras the NeRF was inverted from) join the finetune views, repeated to make
-    up ``cfg.input_share`` of them (with their mirror images when ``cfg.mirror_inputs``). ``progress`` counts steps over all rounds.
+    ``[n, 4, 4]`` and cameras the NeRF was inverted from; any size, not only ``camera``'s) join the
+    finetune views' rays, repeated to make up ``cfg.input_share`` of them (with their mirror images
+    when ``cfg.mirror_inputs``). ``progress`` counts steps over all rounds.
     """
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or poses.shape[0] < 1:
         raise ValueError(f"poses must be [m, 4, 4] camera-to-world matrices with m >= 1, got {tuple(poses.shape)}")
@@ -207,8 +228,14 @@ def denoise_and_finetune(
     resolution = cfg.finetune.occupancy.resolution
     grid = grid.to(device) if grid is not None else generated_grid(params, field, scene, resolution, seed=cfg.finetune.seed)
     poses = poses.float().to(device)
-    if inputs is not None and cfg.mirror_inputs:
-        inputs = with_mirrored_views(*inputs, scene)
+    input_rays = None
+    if inputs is not None:
+        input_images, input_c2w, input_cameras = inputs
+        if input_c2w.shape[0] != len(input_images) or len(input_cameras) != len(input_images):
+            raise ValueError(f"{len(input_images)} input images need as many poses and cameras, got {input_c2w.shape[0]} and {len(input_cameras)}")
+        if cfg.mirror_inputs:
+            input_images, input_c2w, input_cameras = with_mirrored_views(input_images, input_c2w.to(device), input_cameras, scene)
+        input_rays = training_rays(posed_views(input_images, input_c2w, input_cameras, scene, device), device)
     timings = dict.fromkeys(("render_s", "denoise_s", "finetune_s", "total_s"), 0.0)
     for round_index in range(cfg.rounds):
         began = time.perf_counter()
@@ -217,9 +244,9 @@ def denoise_and_finetune(
         rendered = time.perf_counter()
         denoised = denoise_renders(denoiser, rgb, opacity)
         cleaned = time.perf_counter()
-        views, view_poses, cameras = with_inputs(denoised, poses, [camera] * len(poses), inputs, cfg.input_share)
-        params = finetune_on_views(params, field, scene, views, view_poses, cameras, cfg.finetune, grid=grid,
-                                   progress=_offset_progress(progress, round_index * cfg.finetune.steps, cfg.total_steps))
+        rays = with_inputs(training_rays(posed_views(denoised, poses, [camera] * len(poses), scene, device), device), input_rays, cfg.input_share)
+        params = finetune_on_rays(params, field, scene, rays, cfg.finetune, grid=grid,
+                                  progress=_offset_progress(progress, round_index * cfg.finetune.steps, cfg.total_steps))
         grid = generated_grid(params, field, scene, resolution, seed=cfg.finetune.seed)
         done = time.perf_counter()
         for key, seconds in (("render_s", rendered - began), ("denoise_s", cleaned - rendered), ("finetune_s", done - cleaned), ("total_s", done - began)):
@@ -234,21 +261,15 @@ def _offset_progress(progress: Callable[[dict], None] | None, offset: int, total
     return lambda report: progress({**report, "step": offset + report["step"], "steps": total})
 
 
-def with_inputs(images: torch.Tensor, c2w: torch.Tensor, cameras: list[Intrinsics],
-                inputs: tuple[torch.Tensor, torch.Tensor, Sequence[Intrinsics]] | None, share: float):
-    """The denoised views ``[m, H, W, 4]`` with poses ``[m, 4, 4]`` and cameras, plus each input view
-    repeated so that the inputs make up ``share`` of the result (at least one copy each)."""
-    if inputs is None or share == 0.0:
-        return images, c2w, cameras
-    input_images, input_c2w, input_cameras = inputs
-    count = len(input_images)
-    if input_c2w.shape[0] != count or len(input_cameras) != count:
-        raise ValueError(f"{count} input images need as many poses and cameras, got {input_c2w.shape[0]} and {len(input_cameras)}")
-    copies = max(1, round(share / (1.0 - share) * len(images) / count))
-    device = images.device
-    return (torch.cat([images, input_images.to(device).float().repeat(copies, 1, 1, 1)]),
-            torch.cat([c2w, input_c2w.to(device).float().repeat(copies, 1, 1)]),
-            [*cameras, *list(input_cameras) * copies])
+def with_inputs(rays: RayBatch, input_rays: RayBatch | None, share: float) -> RayBatch:
+    """The denoised views' rays ``[P, 3]`` (targets ``[P, 4]``) plus the input views' rays, repeated so
+    that they make up ``share`` of the pool (at least one copy): input photos of any size weigh by
+    their share, not their pixel count."""
+    if input_rays is None or share == 0.0:
+        return rays
+    copies = max(1, round(share / (1.0 - share) * len(rays) / len(input_rays)))
+    return RayBatch(*(torch.cat([a, b.repeat(copies, 1)]) for a, b in
+                      ((rays.origins, input_rays.origins), (rays.directions, input_rays.directions), (rays.rgba, input_rays.rgba))))
 
 
 def denoise_and_finetune_prior(folder: Path, cfg: DenoiseConfig | None = None, poses: torch.Tensor | None = None,
