@@ -42,7 +42,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--denoise-steps", type=int, help="finetune steps on the denoised views per round (default 300)")
     parser.add_argument("--denoise-rounds", type=int, help="rounds of render, denoise and finetune, each on the NeRF the round before finetuned (default 2)")
     parser.add_argument("--denoise-mirror", action=argparse.BooleanOptionalAction, default=None,
-                        help="finetune on the input photos' mirror images too (a left-right symmetric object; default: DenoiseConfig's)")
+                        help="finetune on the input photos' mirror images too (a left-right symmetric object; default on, --no-denoise-mirror for one that is not)")
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--mesh-resolution", type=int, default=128)
     parser.set_defaults(func=cmd_invert)
@@ -227,7 +227,7 @@ def register_generalization(eval_sub) -> None:
     gen.add_argument("--denoiser", help="a denoiser folder from `hypnerf train-denoiser` (adds the tto_denoise row)")
     gen.add_argument("--denoise-rounds", type=int, help="rounds of denoise-and-finetune in the tto_denoise row (default 2)")
     gen.add_argument("--denoise-mirror", action=argparse.BooleanOptionalAction, default=None,
-                     help="the tto_denoise row's finetune also on the input photo's mirror image (default: DenoiseConfig's)")
+                     help="the tto_denoise row's finetune also on the input photo's mirror image (default on)")
     gen.add_argument("--rows", help=f"comma-separated rows to compute (default all of {','.join(ROWS)})")
     gen.set_defaults(func=cmd_eval_generalization)
 

@@ -27,7 +27,7 @@ class InversionOptions(BaseModel):
     denoise: bool = Field(False, description="after the codes, render fixed views, denoise them and finetune on them and the input images (needs a bundle with a denoiser)")
     denoise_steps: int | None = Field(None, ge=1, description="finetune steps on the denoised views per round; default 300 (all rounds counted in the same cap)")
     denoise_rounds: int | None = Field(None, ge=1, le=4, description="times render, denoise and finetune run, each on the NeRF the round before finetuned; default 2")
-    denoise_mirror: bool | None = Field(None, description="finetune on the input images' mirror images too (a left-right symmetric object); default: the service's denoise-and-finetune default")
+    denoise_mirror: bool | None = Field(None, description="finetune on the input images' mirror images too (a left-right symmetric object; false for one that is not); default true")
     webhook_url: str | None = Field(None, max_length=2048, description="POSTed the job (HMAC-signed) when it finishes; its host must be in HYPNERF_WEBHOOK_ALLOW")
 
 
