@@ -9,9 +9,10 @@ before it became ``DenoiseConfig``'s default. The objects, their cached single-v
 evaluation views are ``benchmarks.bench_denoiser_selection``'s; scores after each round at every
 third view after the input, each object's row kept under ``runs/denoise/rounds/<variant>/`` (the
 denoiser's name, with the share when it is not the default and ``_mirror`` with the mirrored
-photo; a rerun or a larger ``--objects`` scores only what is missing). ``--part K --parts N`` runs every N-th object (one process a core) and ``--merge``
-writes ``benchmarks/results/denoise_rounds_<variant>_<N>objects.json`` (``denoise_rounds.json``
-for the study that chose the number of rounds, ``STUDY``).
+photo; a rerun or a larger ``--objects`` scores only what is missing). ``--part K --parts N``
+runs every N-th object (one process a core) and ``--merge`` writes
+``benchmarks/results/denoise_rounds_<variant>_<N>objects.json`` (``denoise_rounds.json`` for the
+study that chose the number of rounds, ``STUDY``).
 """
 
 from __future__ import annotations

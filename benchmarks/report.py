@@ -366,8 +366,8 @@ def generalization_section(data: dict) -> list[str]:
                   "never the test split). The denoiser was chosen over the paper's-pairs and deformed-copy denoisers on this table, so its "
                   "rows are optimistic by that choice; against further candidates it was kept, and the input photo's share of the finetune "
                   "views, the number of rounds and the photo's mirror image were chosen on a development set of deformed copies (the "
-                  "mirror image before its row here was run; Choosing the denoiser, Rounds of denoise-and-finetune, Denoiser denoiser-tto-inputs3 against "
-                  "denoiser-tto and The input photo's mirror image in the finetune, below).", ""]
+                  "mirror image before its row here was run; Choosing the denoiser, Rounds of denoise-and-finetune, Denoiser "
+                  "denoiser-tto-inputs3 against denoiser-tto and The input photo's mirror image in the finetune, below).", ""]
     lines += ["Renders: `benchmarks/results/generalization.png` (per object: input view and ground truth at three evaluation poses, "
               f"then one line per row of its first run: {', '.join(data['config']['rows'])})"
               + (f"; the shipped row beside TTO: `{data['shipped_denoise_figure']}` (the same layout, from its second run)"
